@@ -1,0 +1,168 @@
+"""One-axis camera motion in the camera optical frame (x right, y down, z forward).
+
+A camera moved by ``alpha`` along one axis sees a point ``P`` at ``P' = R^T (P - t)``:
+translations ``tx, ty, tz`` (metres) set ``t = alpha * e_axis``; rotations ``rx, ry, rz`` (radians)
+set ``R`` to the rotation about that axis::
+
+    rx = [[1,0,0],[0,c,-s],[0,s,c]]   ry = [[c,0,s],[0,1,0],[-s,0,c]]   rz = [[c,-s,0],[s,c,0],[0,0,1]]
+
+The projection in pixel-edge coordinates is ``rho = (fx X'/Z' + cx + 1/2, fy Y'/Z' + cy + 1/2)``,
+depth ``D = Z'``; the point lands in pixel ``(row, col) = (floor rho_2, floor rho_1)``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .camera import CameraIntrinsics
+from .errors import PwsError
+
+AXES: tuple[str, ...] = ("tx", "ty", "tz", "rx", "ry", "rz")
+TRANSLATIONS = ("tx", "ty", "tz")
+ROTATIONS = ("rx", "ry", "rz")
+UNITS = {"tx": "m", "ty": "m", "tz": "m", "rx": "rad", "ry": "rad", "rz": "rad"}
+# CMS baseline motion-space smoothing sigma per axis (REFERENCE.md).
+CMS_SIGMA = {"tz": 0.1, "tx": 0.05, "ty": 0.05, "rx": 0.0436, "ry": 0.0436, "rz": 0.122}
+# The paper's headline radii per axis.
+PAPER_RADIUS = {
+    "tz": 0.010,
+    "tx": 0.005,
+    "ty": 0.005,
+    "rz": math.radians(0.7),
+    "rx": math.radians(0.25),
+    "ry": math.radians(0.25),
+}
+
+
+def parse_axis(name: str) -> str:
+    """Normalise an axis name (``Tz``, ``tz``, ``RY`` ...); raise PwsError if unknown."""
+    axis = str(name).strip().lower()
+    if axis not in AXES:
+        raise PwsError(f"unknown motion axis {name!r}: expected one of {', '.join(AXES)}")
+    return axis
+
+
+def rotation_matrix(axis: str, angle: float) -> np.ndarray:
+    """The rotation R of the camera for ``axis`` in ``rx, ry, rz`` (identity for translations)."""
+    c, s = math.cos(angle), math.sin(angle)
+    if axis == "rx":
+        return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    if axis == "ry":
+        return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    if axis == "rz":
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return np.eye(3)
+
+
+def camera_pose(axis: str, alpha: float) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) of the moved camera in the original optical frame."""
+    axis = parse_axis(axis)
+    t = np.zeros(3)
+    if axis in TRANSLATIONS:
+        t[TRANSLATIONS.index(axis)] = alpha
+        return np.eye(3), t
+    return rotation_matrix(axis, alpha), t
+
+
+def transform(points, axis: str, alpha, xp=np):
+    """Coordinates ``P' = R^T (P - t)`` of ``points[..., 3]`` for motion ``alpha`` (broadcasts).
+
+    Works with numpy (``xp=np``) and torch (``xp=torch``) arrays. ``alpha`` must broadcast against
+    ``points[..., 0]``.
+    """
+    X, Y, Z = points[..., 0], points[..., 1], points[..., 2]
+    if axis == "tx":
+        return X - alpha, Y + 0 * alpha, Z + 0 * alpha
+    if axis == "ty":
+        return X + 0 * alpha, Y - alpha, Z + 0 * alpha
+    if axis == "tz":
+        return X + 0 * alpha, Y + 0 * alpha, Z - alpha
+    c, s = xp.cos(alpha), xp.sin(alpha)
+    if axis == "rx":  # R^T = [[1,0,0],[0,c,s],[0,-s,c]]
+        return X + 0 * alpha, c * Y + s * Z, -s * Y + c * Z
+    if axis == "ry":  # R^T = [[c,0,-s],[0,1,0],[s,0,c]]
+        return c * X - s * Z, Y + 0 * alpha, s * X + c * Z
+    if axis == "rz":  # R^T = [[c,s,0],[-s,c,0],[0,0,1]]
+        return c * X + s * Y, -s * X + c * Y, Z + 0 * alpha
+    raise PwsError(f"unknown motion axis {axis!r}")
+
+
+def project(points, intr: CameraIntrinsics, axis: str, alpha, xp=np):
+    """Pixel-edge coordinates ``(u, v)`` and depth ``D`` of points under motion ``alpha``.
+
+    ``u`` and ``v`` are meaningful only where ``D > 0``.
+    """
+    Xp, Yp, Zp = transform(points, axis, alpha, xp=xp)
+    if xp is np:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = intr.fx * Xp / Zp + (intr.cx + 0.5)
+            v = intr.fy * Yp / Zp + (intr.cy + 0.5)
+    else:
+        u = intr.fx * Xp / Zp + (intr.cx + 0.5)
+        v = intr.fy * Yp / Zp + (intr.cy + 0.5)
+    return u, v, Zp
+
+
+def _harmonic_extrema(A: np.ndarray, B: np.ndarray, lo: float, hi: float) -> list[np.ndarray]:
+    """Angles in (lo, hi) where ``A cos t + B sin t`` is stationary (``t = atan2(B, A) + k pi``)
+    or zero (``t = atan2(B, A) + pi/2 + k pi``); NaN where none."""
+    base = np.arctan2(B, A)
+    out = []
+    for offset in (0.0, 0.5 * math.pi):
+        for k in range(-3, 4):
+            t = base + offset + k * math.pi
+            out.append(np.where((t > lo) & (t < hi), t, np.nan))
+    return out
+
+
+def split_points(points: np.ndarray, axis: str, lo: float, hi: float) -> np.ndarray:
+    """Motion values in ``(lo, hi)`` splitting ``[lo, hi]`` into pieces on which ``u``, ``v`` and
+    the depth of each point are monotonic and the depth has constant sign.
+
+    Returns an array ``(N, M)`` with NaN for unused slots.
+    """
+    X, Y, Z = points[:, 0], points[:, 1], points[:, 2]
+    n = len(points)
+    cands: list[np.ndarray] = []
+    if axis == "tz":  # pole where Z - alpha = 0
+        cands.append(np.where((Z > lo) & (Z < hi), Z, np.nan))
+    elif axis == "rz":  # u ~ X c + Y s ; v ~ Y c - X s
+        cands += _harmonic_extrema(X, Y, lo, hi) + _harmonic_extrema(Y, -X, lo, hi)
+    elif axis == "rx":  # depth = Z c - Y s ; Y' = Y c + Z s
+        cands += _harmonic_extrema(Z, -Y, lo, hi)
+    elif axis == "ry":  # depth = Z c + X s ; X' = X c - Z s
+        cands += _harmonic_extrema(Z, X, lo, hi)
+    if not cands:
+        return np.full((n, 0), np.nan)
+    arr = np.stack(cands, axis=1)
+    arr.sort(axis=1)  # NaNs last
+    keep = ~np.all(np.isnan(arr), axis=0)
+    return arr[:, keep]
+
+
+def lipschitz_constant(points: np.ndarray, intr: CameraIntrinsics, axis: str, lo: float, hi: float, samples: int = 33) -> np.ndarray:
+    """``L_P = max_alpha |d rho / d alpha|_inf`` over ``[lo, hi]`` for each point.
+
+    Evaluated with the analytic derivative on a grid of ``samples`` values including the split
+    points (where it peaks for these functions); used for planning only (PwS-L / PwS-OF).
+    """
+    grid = np.linspace(lo, hi, samples)
+    extra = split_points(points, axis, lo, hi)
+    best = np.zeros(len(points))
+    h = max(abs(hi - lo), 1e-9) * 1e-6
+
+    def deriv(alpha):
+        u1, v1, _ = project(points, intr, axis, alpha + h)
+        u0, v0, _ = project(points, intr, axis, alpha - h)
+        return np.maximum(np.abs(u1 - u0), np.abs(v1 - v0)) / (2 * h)
+
+    for a in grid:
+        best = np.fmax(best, deriv(a))
+    for j in range(extra.shape[1]):
+        col = extra[:, j]
+        ok = ~np.isnan(col)
+        if ok.any():
+            d = deriv(np.where(ok, col, lo))
+            best = np.where(ok, np.fmax(best, d), best)
+    return best
