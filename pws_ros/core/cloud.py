@@ -18,7 +18,8 @@ def colors_to_float(colors: np.ndarray, what: str = "colors") -> np.ndarray:
     require(np.issubdtype(colors.dtype, np.floating) or np.issubdtype(colors.dtype, np.integer), f"{what} must be numeric, got {colors.dtype}")
     out = colors.astype(np.float32)
     require(bool(np.all(np.isfinite(out))), f"{what} contain NaN or inf")
-    require(bool(out.size == 0 or (out.min() >= 0.0 and out.max() <= 1.0)), f"{what} must be uint8 or float in [0, 1], got range [{out.min():.3g}, {out.max():.3g}]")
+    if out.size and not (out.min() >= 0.0 and out.max() <= 1.0):
+        raise PwsError(f"{what} must be uint8 or float in [0, 1], got range [{out.min():.3g}, {out.max():.3g}]")
     return out
 
 
