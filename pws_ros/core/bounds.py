@@ -54,16 +54,19 @@ class SegmentValues:
         a, b = f[:-1], f[1:]
         d = ((a - b) ** 2).sum(axis=2)  # (S, P)
         base = d.sum(axis=1)
-        k1 = k0 + len(base)
-        sl = self._slice(k0, k1)
-        if sl.stop > sl.start:
-            seg = self.seg[sl] - k0
-            pix = self.pix[sl]
-            v = self.val[sl].astype(np.float64)
-            fa, fb = a[seg, pix], b[seg, pix]
-            excess = ((v - fa) ** 2).sum(1) + ((v - fb) ** 2).sum(1) - d[seg, pix]
-            base = base + _sum_of_group_max(seg, pix, excess, len(base))
-        return base * SAFETY
+        def excess(seg, pix, v):
+            return ((v - a[seg, pix]) ** 2).sum(1) + ((v - b[seg, pix]) ** 2).sum(1) - d[seg, pix]
+
+        return (base + self._extra(k0, len(base), excess)) * SAFETY
+
+    def _extra(self, k0: int, nseg: int, excess_fn) -> np.ndarray:
+        """Per segment ``k0 .. k0+nseg-1``: sum over pixels of the largest positive excess of an extra value."""
+        sl = self._slice(k0, k0 + nseg)
+        if sl.stop <= sl.start:
+            return np.zeros(nseg)
+        seg = self.seg[sl] - k0
+        pix = self.pix[sl]
+        return _sum_of_group_max(seg, pix, excess_fn(seg, pix, self.val[sl].astype(np.float64)), nseg)
 
     def anchor_dist_sq(self, frames: np.ndarray, anchor: np.ndarray, k0: int = 0) -> np.ndarray:
         """``D_i(anchor)^2`` for segments ``k0 ..`` given consecutive frames (see module doc)."""
@@ -74,15 +77,11 @@ class SegmentValues:
         db = ((b - y) ** 2).sum(axis=2)
         m = np.maximum(da, db)
         base = m.sum(axis=1)
-        k1 = k0 + len(base)
-        sl = self._slice(k0, k1)
-        if sl.stop > sl.start:
-            seg = self.seg[sl] - k0
-            pix = self.pix[sl]
-            v = self.val[sl].astype(np.float64)
-            excess = ((v - y[pix]) ** 2).sum(1) - m[seg, pix]
-            base = base + _sum_of_group_max(seg, pix, excess, len(base))
-        return base * SAFETY
+
+        def excess(seg, pix, v):
+            return ((v - y[pix]) ** 2).sum(1) - m[seg, pix]
+
+        return (base + self._extra(k0, len(base), excess)) * SAFETY
 
 
 def _flat(frames) -> np.ndarray:

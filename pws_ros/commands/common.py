@@ -1,0 +1,101 @@
+"""Arguments shared by several ``pws`` subcommands, and their loading."""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+
+from ..core.camera import CameraIntrinsics
+from ..core.certify import COVERAGES, CertifyConfig
+from ..core.cloud import Cloud
+from ..core.errors import PwsError, require
+from ..core.motion import AXES
+from ..core.partition import DEFAULT_DELTA_PX, DEFAULT_MAX_PARTITIONS, PLAN_METHODS
+
+
+def positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"must be positive and finite, got {text}")
+    return v
+
+
+def positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
+    return v
+
+
+def add_scene_args(p: argparse.ArgumentParser, radius: bool = True) -> None:
+    p.add_argument("--cloud", required=True, metavar="C.npz",
+                   help="cloud .npz (points (N,3) metres in the camera optical frame, colors (N,3)); the entire "
+                        "dense cloud for --method pws, the one-frame cloud for pws_of")
+    p.add_argument("--camera", required=True, metavar="CAM.yaml", help="ROS camera_info YAML (camera_calibration format)")
+    p.add_argument("--axis", required=True, choices=AXES, help="motion axis: tx/ty/tz in metres, rx/ry/rz in radians")
+    if radius:
+        p.add_argument("--radius", required=True, type=positive_float, metavar="B",
+                       help="certify every motion in [-B, B] (metres or radians)")
+
+
+def add_plan_args(p: argparse.ArgumentParser, methods=PLAN_METHODS, default="pws_of") -> None:
+    p.add_argument("--method", choices=methods, default=default,
+                   help=f"partition method (default {default}): pws = entire cloud (Thm 1), pws_l = Lipschitz "
+                        "(Thm 2), pws_of = one-frame cloud with delta-convexity (Thm 3)" + (", cms = motion-space baseline" if "cms" in methods else ""))
+    p.add_argument("--delta", type=positive_float, default=None, metavar="D",
+                   help=f"PwS-OF delta-convexity constant in pixels (default {DEFAULT_DELTA_PX})")
+    p.add_argument("--max-partitions", type=positive_int, default=DEFAULT_MAX_PARTITIONS, metavar="N",
+                   help=f"refuse plans with more partitions than this (default {DEFAULT_MAX_PARTITIONS})")
+
+
+def add_smoothing_args(p: argparse.ArgumentParser) -> None:
+    d = CertifyConfig()
+    p.add_argument("--coverage", choices=COVERAGES, default=d.coverage,
+                   help="coverage rule: paper = max_i sqrt(B_i/2) < min_i R_i; pairwise = B_i < R_i^2 + R_{i+1}^2 per "
+                        f"segment; anchors = p_A at K anchors only (default {d.coverage})")
+    p.add_argument("--sigma", type=positive_float, default=d.sigma, help=f"pixel noise std (default {d.sigma})")
+    p.add_argument("--n0", type=positive_int, default=d.n0, help=f"selection samples (default {d.n0})")
+    p.add_argument("--n", type=positive_int, default=d.n, help=f"estimation samples per partition/anchor (default {d.n})")
+    p.add_argument("--alpha", type=positive_float, default=d.alpha, help=f"overall failure probability, split by Bonferroni (default {d.alpha})")
+    p.add_argument("--seed", type=int, default=d.seed, help=f"noise seed (default {d.seed})")
+    p.add_argument("--device", default=d.device, help="torch device: cpu or cuda[:N] (default cpu)")
+    p.add_argument("--batch-size", type=positive_int, default=d.batch_size, help=f"classifier batch size (default {d.batch_size})")
+    p.add_argument("--anchors", type=positive_int, default=d.num_anchors, dest="num_anchors", help=f"number of anchors for --coverage anchors (default {d.num_anchors})")
+    p.add_argument("--cms-sigma", type=positive_float, default=None, help="CMS motion-space sigma (default per axis, REFERENCE.md)")
+    p.add_argument("--background", type=float, default=0.0, help="value of empty pixels (default 0.0)")
+
+
+def config_from_args(args) -> CertifyConfig:
+    return CertifyConfig(sigma=args.sigma, n0=args.n0, n=args.n, alpha=args.alpha, seed=args.seed, device=args.device,
+                         batch_size=args.batch_size, coverage=args.coverage, num_anchors=args.num_anchors,
+                         background=args.background, max_partitions=args.max_partitions, delta=args.delta,
+                         cms_sigma=args.cms_sigma).validate()
+
+
+def load_scene(args) -> tuple[Cloud, CameraIntrinsics]:
+    cloud = Cloud.load(args.cloud).require_nonempty()
+    intr = CameraIntrinsics.from_yaml(args.camera)
+    return cloud, intr
+
+
+def emit(obj: dict, as_json: bool, lines: list[str]) -> None:
+    if as_json:
+        json.dump(obj, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        print("\n".join(lines))
+
+
+def require_ratio_alpha(alpha: float) -> None:
+    require(0 < alpha < 1, f"--alpha must lie in (0, 1), got {alpha}")
+
+
+__all__ = ["PwsError", "add_plan_args", "add_scene_args", "add_smoothing_args", "config_from_args", "emit", "load_scene",
+           "positive_float", "positive_int"]

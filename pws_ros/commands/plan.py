@@ -1,0 +1,34 @@
+"""``pws plan``: the uniform partition of the motion range (PwS / PwS-L / PwS-OF)."""
+from __future__ import annotations
+
+from ..core.partition import plan_partitions
+from .common import add_plan_args, add_scene_args, emit, load_scene
+
+
+def register(sub) -> None:
+    p = sub.add_parser("plan", help="compute the camera-motion partitions of a cloud",
+                       description="Compute delta_alpha and the grid of camera motions (from -B to +B, containing 0) "
+                                   "that PwS, PwS-L or PwS-OF needs for a cloud, camera, axis and radius.")
+    add_scene_args(p)
+    add_plan_args(p)
+    p.add_argument("--out", metavar="PLAN.json", help="also write the plan as JSON (input of `pws render --plan`)")
+    p.add_argument("--json", action="store_true", help="print the plan as JSON")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    cloud, intr = load_scene(args)
+    plan = plan_partitions(cloud, intr, args.axis, args.radius, args.method, delta=args.delta, max_partitions=args.max_partitions)
+    if args.out:
+        plan.to_json(args.out, indent=1)
+    d = plan.to_dict()
+    emit(d, args.json, [
+        f"method          {plan.method}",
+        f"axis            {plan.axis} ({plan.unit})",
+        f"radius          {plan.radius:g}",
+        f"delta_alpha     {plan.delta_alpha:.6g}",
+        f"num_partitions  {plan.num_partitions}",
+        f"alphas          {plan.alphas[0]:g} .. {plan.alphas[-1]:g} (step {plan.alphas[1] - plan.alphas[0]:.6g}, contains 0)",
+        f"details         " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in plan.details.items()),
+    ] + ([f"written         {args.out}"] if args.out else []))
+    return 0
