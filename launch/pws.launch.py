@@ -1,0 +1,64 @@
+"""Launch the pws_ros ``pipeline``: cloud listener, partition planner, projector and certifier in ONE
+process (frames and bounds handed over in memory).
+
+    ros2 launch pws_ros pws.launch.py use_sim_time:=true        # then: ros2 bag play bags/demo --clock
+    ros2 launch pws_ros pws.launch.py depth:=/camera/camera/aligned_depth_to_color/image_raw \
+        color:=/camera/camera/color/image_raw camera_info:=/camera/camera/color/camera_info
+    ros2 launch pws_ros pws.launch.py points:=/kinect/depth_registered/points namespace:=robot1
+
+Arguments: config_file, namespace, use_sim_time, log_level, and the input topic remaps points, depth,
+color, camera_info (each remaps the default input topic of config/pws.yaml, which are the RealSense
+ROS 2 wrapper's names and those of the shipped demo recording bags/demo).
+"""
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument
+from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
+from launch_ros.actions import Node
+from launch_ros.descriptions import ParameterValue
+from launch_ros.substitutions import FindPackageShare
+
+# default input topic of config/pws.yaml -> launch argument that remaps it
+INPUT_REMAPS = {
+    "/camera/depth/color/points": ("points", "PointCloud2 input (organized or not, xyz + optional packed rgb)"),
+    "/camera/aligned_depth_to_color/image_raw": ("depth", "depth Image registered to the colour camera (16UC1 mm or 32FC1 m)"),
+    "/camera/color/image_raw": ("color", "colour Image (rgb8, bgr8, rgba8, bgra8, mono8)"),
+    "/camera/color/camera_info": ("camera_info", "CameraInfo of the colour camera"),
+}
+
+
+def launch_arguments():
+    args = [
+        DeclareLaunchArgument("config_file", default_value=PathJoinSubstitution([FindPackageShare("pws_ros"), "config", "pws.yaml"]),
+                              description="ROS 2 parameter file (see config/pws.yaml for every parameter)"),
+        DeclareLaunchArgument("namespace", default_value="", description="namespace of the node(s) and their topics"),
+        DeclareLaunchArgument("use_sim_time", default_value="false",
+                              description="use /clock (set true with `ros2 bag play --clock`)"),
+        DeclareLaunchArgument("log_level", default_value="info", description="ROS log level"),
+    ]
+    for default, (arg, what) in INPUT_REMAPS.items():
+        args.append(DeclareLaunchArgument(arg, default_value=default, description=f"input topic: {what}"))
+    return args
+
+
+def input_remappings():
+    return [(default, LaunchConfiguration(arg)) for default, (arg, _) in INPUT_REMAPS.items()]
+
+
+def common_parameters():
+    return [LaunchConfiguration("config_file"),
+            {"use_sim_time": ParameterValue(LaunchConfiguration("use_sim_time"), value_type=bool)}]
+
+
+def generate_launch_description():
+    pipeline = Node(
+        package="pws_ros",
+        executable="pipeline",
+        name="pipeline",
+        namespace=LaunchConfiguration("namespace"),
+        parameters=common_parameters(),
+        remappings=input_remappings(),
+        arguments=["--ros-args", "--log-level", LaunchConfiguration("log_level")],
+        output="screen",
+        emulate_tty=True,
+    )
+    return LaunchDescription(launch_arguments() + [pipeline])

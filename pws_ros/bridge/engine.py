@@ -1,0 +1,343 @@
+"""``FrameCertifier``: the ROS-free per-frame pipeline (plan, render, certify every configured axis).
+
+Used by the ``pipeline`` node (everything in memory), by the four nodes of the four-process mode
+(each calls its own stage: :meth:`FrameCertifier.plan_bundle`, :meth:`FrameCertifier.render_axis`,
+:meth:`FrameCertifier.certify_assembled`), by ``pws replay`` and by the benchmarks.
+
+The cloud stays metric in the camera optical frame; only the camera changes: frames are rendered at
+the model's input size (or ``render_width x render_height``), the intrinsics rescaled with
+:meth:`CameraIntrinsics.scaled`. The model (and denoiser, and the dense cloud of method ``pws``) is
+loaded once. A ``cuda:N`` device that is not available falls back to the CPU with a warning sent to
+``log``. Any failure of one axis becomes an ERROR certificate for that axis (never an exception):
+one bad axis or frame never stops a node.
+"""
+from __future__ import annotations
+
+import threading
+import time
+import traceback
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from ..core.camera import CameraIntrinsics
+from ..core.cloud import Cloud
+from ..core.errors import PwsError, require
+from ..core.motion import UNITS
+from ..core.result import Certificate, error_certificate
+from .config import PwsConfig, check_consistency, resolve_path
+from .scheme import PlanBundle, preview_image, rendered_plan_from_parts
+from .sync import AssembledFrame
+
+LogFn = Callable[[str, str], None]   # (level: "info" | "warn" | "error", message)
+
+
+def _default_log(level: str, message: str) -> None:
+    import sys
+
+    print(f"[pws {level}] {message}", file=sys.stderr)
+
+
+def resolve_device_with_fallback(device: str, log: LogFn | None = None) -> str:
+    """``device`` if usable, else ``"cpu"`` with a warning (``cuda:N`` without CUDA or that GPU)."""
+    import torch
+
+    dev = (device or "cpu").strip()
+    if dev.startswith("cuda"):
+        why = ""
+        if not torch.cuda.is_available():
+            why = "CUDA is not available"
+        else:
+            try:
+                index = torch.device(dev).index
+            except (RuntimeError, TypeError):
+                raise PwsError(f"invalid device {device!r}: expected cpu or cuda:N") from None
+            if index is not None and index >= torch.cuda.device_count():
+                why = f"only {torch.cuda.device_count()} CUDA device(s) exist"
+        if why:
+            (log or _default_log)("warn", f"device {dev} requested but {why}; falling back to cpu")
+            return "cpu"
+        return dev
+    require(dev == "cpu", f"invalid device {device!r}: expected cpu or cuda:N")
+    return dev
+
+
+def render_camera(intr: CameraIntrinsics, size: tuple[int, int] | None) -> CameraIntrinsics:
+    """The camera frames are rendered with: ``intr`` rescaled to ``size`` = (H, W) (None: unchanged)."""
+    if size is None or (int(size[0]), int(size[1])) == (intr.height, intr.width):
+        return intr
+    return intr.scaled(int(size[1]), int(size[0]))
+
+
+@dataclass
+class FrameResult:
+    """The outcome of one input frame: one certificate per configured axis (in config order)."""
+
+    stamp_ns: int
+    frame_id: str
+    certificates: list[Certificate]
+    plans: dict[str, Any] = field(default_factory=dict)        # axis -> core.partition.Plan (absent if planning failed)
+    camera: CameraIntrinsics | None = None                     # the render camera
+    timings: dict[str, float] = field(default_factory=dict)    # seconds: total, and "<axis>" per axis
+    previews: list[tuple[str, int, np.ndarray]] = field(default_factory=list)  # (axis, index, uint8 RGB)
+
+    @property
+    def compute_ms(self) -> dict[str, float]:
+        return {a: 1000.0 * self.timings.get(a, float("nan")) for a in (c.axis for c in self.certificates)}
+
+
+class FrameCertifier:
+    """Certify frames against camera motion on every configured axis.
+
+    ``model``, ``denoiser`` and ``dense_cloud`` may be given (tests, replay); otherwise they are
+    loaded from ``config.model_path`` / ``denoiser_path`` / ``dense_cloud_path`` when first needed
+    (``load=True`` loads them now, so a bad path fails at start-up with PwsError).
+    """
+
+    def __init__(self, config: PwsConfig, *, log: LogFn | None = None, model: Any = None, denoiser: Any = None,
+                 dense_cloud: Cloud | None = None, load: bool = True):
+        check_consistency(config)
+        self.config = config
+        self.log: LogFn = log or _default_log
+        self.device = resolve_device_with_fallback(config.device, self.log)
+        self.device_warning = "" if self.device == config.device else f"{config.device} unavailable, using cpu"
+        self._model = model
+        self._denoiser = denoiser
+        self._dense = dense_cloud
+        self._lock = threading.Lock()
+        self._aspect_warned = False
+        if load:
+            self.model  # noqa: B018 - load now
+            self.denoiser  # noqa: B018
+            if config.method == "pws":
+                self.dense_cloud  # noqa: B018
+
+    # ---- lazily loaded resources ----
+    @property
+    def model(self) -> Any:
+        with self._lock:
+            if self._model is None:
+                from ..core.model import load_model
+
+                path = resolve_path(self.config.model_path, "model file")
+                classes = str(resolve_path(self.config.classes_path, "class file")) if self.config.classes_path else None
+                self._model = load_model(path, classes=classes, device=self.device)
+                self.log("info", f"loaded model {path} ({len(self._model.class_names)} classes, input "
+                                 f"{self._model.input_size or 'any size'}) on {self.device}")
+            return self._model
+
+    @property
+    def denoiser(self) -> Any:
+        with self._lock:
+            if self._denoiser is None and self.config.denoiser_path:
+                from ..core.model import load_denoiser
+
+                self._denoiser = load_denoiser(resolve_path(self.config.denoiser_path, "denoiser file"), device=self.device)
+            return self._denoiser
+
+    @property
+    def dense_cloud(self) -> Cloud | None:
+        with self._lock:
+            if self._dense is None and self.config.dense_cloud_path:
+                self._dense = Cloud.load(resolve_path(self.config.dense_cloud_path, "dense cloud file"))
+                self.log("info", f"loaded dense cloud {self.config.dense_cloud_path} ({len(self._dense)} points)")
+            return self._dense
+
+    @property
+    def render_size(self) -> tuple[int, int] | None:
+        """(H, W) of rendered frames: ``render_height x render_width`` if set, else the model's input size."""
+        if self.config.render_width > 0 and self.config.render_height > 0:
+            return (self.config.render_height, self.config.render_width)
+        size = getattr(self.model, "input_size", None)
+        return (int(size[0]), int(size[1])) if size is not None else None
+
+    def render_camera(self, intr: CameraIntrinsics) -> CameraIntrinsics:
+        size = self.render_size
+        cam = render_camera(intr, size)
+        if size is not None and not self._aspect_warned:
+            src, dst = intr.width / intr.height, size[1] / size[0]
+            if abs(src - dst) > 0.01 * src:
+                self._aspect_warned = True
+                self.log("warn", f"camera {intr.width}x{intr.height} is rendered at {size[1]}x{size[0]}: the aspect ratio changes "
+                                 f"(fx and fy are scaled differently)")
+        return cam
+
+    def certify_config(self):
+        from dataclasses import replace
+
+        return replace(self.config.certify_config(), device=self.device)
+
+    # ---- helpers ----
+    def error_for(self, axis: str, reason: str, **kw: Any) -> Certificate:
+        """An ERROR certificate for ``axis`` carrying this config's settings."""
+        c = self.config
+        return error_certificate(axis, UNITS[axis], c.method, c.coverage, c.radius_for(axis), reason,
+                                 sigma=c.sigma, n0=c.n0, n=c.n, alpha=c.alpha, seed=c.seed, **kw)
+
+    def _guard(self, axis: str, fn: Callable[[], Certificate]) -> Certificate:
+        try:
+            return fn()
+        except PwsError as exc:
+            return self.error_for(axis, str(exc))
+        except Exception as exc:  # never let one axis kill the node
+            self.log("error", f"axis {axis}: unexpected {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+            return self.error_for(axis, f"internal error ({type(exc).__name__}): {' '.join(str(exc).split())[:200]}")
+
+    def source_cloud(self, cloud: Cloud, dense_cloud: Cloud | None = None) -> Cloud:
+        """The cloud planned and rendered from: the dense scene cloud for ``pws``, else the frame's."""
+        if self.config.method == "pws":
+            dense = dense_cloud if dense_cloud is not None else self.dense_cloud
+            require(dense is not None, "method pws needs the entire scene cloud: set dense_cloud_path")
+            return dense
+        return cloud
+
+    # ---- stage 1: plan ----
+    def plan_axis(self, cloud: Cloud, cam: CameraIntrinsics, axis: str) -> Any:
+        from ..core.partition import plan_partitions
+
+        c = self.config
+        require(c.method != "cms", "method cms has no partition plan")
+        return plan_partitions(cloud, cam, axis, c.radius_for(axis), c.method,
+                               delta=c.delta if c.delta > 0 else None, max_partitions=c.max_partitions)
+
+    def plan_bundle(self, cloud: Cloud, intr: CameraIntrinsics, stamp_ns: int, frame_id: str = "",
+                    dense_cloud: Cloud | None = None) -> PlanBundle:
+        """Every axis' plan for one frame (errors per axis are recorded, not raised)."""
+        cam = self.render_camera(intr)
+        bundle = PlanBundle(int(stamp_ns), frame_id or intr.frame_id, self.config.method, cam, list(self.config.axes))
+        if self.config.method == "cms":
+            for a in bundle.axes:
+                bundle.errors[a] = "method cms is only available in the pipeline node (it samples random poses inside the certifier)"
+            return bundle
+        try:
+            src = self.source_cloud(cloud, dense_cloud)
+        except PwsError as exc:
+            bundle.errors = {a: str(exc) for a in bundle.axes}
+            return bundle
+        for a in bundle.axes:
+            try:
+                bundle.plans[a] = self.plan_axis(src, cam, a)
+            except PwsError as exc:
+                bundle.errors[a] = str(exc)
+            except Exception as exc:
+                self.log("error", f"planning {a}: unexpected {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+                bundle.errors[a] = f"internal error ({type(exc).__name__}): {' '.join(str(exc).split())[:200]}"
+        return bundle
+
+    # ---- stage 2: render ----
+    def render_axis(self, cloud: Cloud, cam: CameraIntrinsics, plan: Any, dense_cloud: Cloud | None = None) -> Any:
+        """The :class:`~pws_ros.core.bounds.RenderedPlan` of one plan (frames + per-segment bounds)."""
+        from ..core.bounds import render_plan
+
+        return render_plan(self.source_cloud(cloud, dense_cloud), cam, plan, background=self.config.background, device=self.device)
+
+    # ---- stage 3: certify ----
+    def certify_rendered(self, rendered: Any) -> Certificate:
+        from ..core.certify import certify_rendered
+
+        return certify_rendered(rendered, self.model, self.certify_config(), denoiser=self.denoiser)
+
+    def certify_assembled(self, frame: AssembledFrame) -> FrameResult:
+        """Certify what the four-process certifier assembled (``frame.info`` is the PlanBundle)."""
+        t0 = time.perf_counter()
+        bundle: PlanBundle | None = frame.info
+        certs, timings, plans = [], {}, {}
+        for ax in frame.axes:
+            t1 = time.perf_counter()
+            if not ax.ok:
+                certs.append(self.error_for(ax.axis, ax.error))
+            elif bundle is None or ax.axis not in bundle.plans:
+                certs.append(self.error_for(ax.axis, "no plan for this axis"))
+            else:
+                plan = bundle.plans[ax.axis]
+                plans[ax.axis] = plan
+                certs.append(self._guard(ax.axis, lambda: self.certify_rendered(rendered_plan_from_parts(plan, ax.frames, ax.bounds))))
+            timings[ax.axis] = time.perf_counter() - t1
+        timings["total"] = time.perf_counter() - t0
+        return FrameResult(frame.stamp_ns, bundle.frame_id if bundle else "", certs, plans, bundle.camera if bundle else None, timings)
+
+    # ---- all stages in memory ----
+    def certify_axis(self, cloud: Cloud, cam: CameraIntrinsics, axis: str, dense_cloud: Cloud | None = None,
+                     preview_every: int = 0, previews: list | None = None, plans: dict | None = None) -> Certificate:
+        """Plan, render and certify one axis with the core's streaming ``certify`` (frames are rendered
+        chunk by chunk, never all kept in memory). Never raises: failures are ERROR certificates."""
+        from ..core.certify import certify
+
+        c = self.config
+        if c.method == "cms":
+            return self._guard(axis, lambda: certify(cloud, cam, self.model, axis, c.radius_for(axis), method="cms",
+                                                     config=self.certify_config(), denoiser=self.denoiser))
+
+        def run() -> Certificate:
+            t0 = time.perf_counter()
+            src = self.source_cloud(cloud, dense_cloud)
+            plan = self.plan_axis(src, cam, axis)
+            if plans is not None:
+                plans[axis] = plan
+            t_plan = time.perf_counter() - t0
+            cert = certify(src, cam, self.model, axis, c.radius_for(axis), method=c.method, config=self.certify_config(),
+                           denoiser=self.denoiser, plan=plan)
+            cert.timings["plan"] = t_plan
+            cert.timings["total"] = time.perf_counter() - t0
+            if previews is not None and preview_every > 0:
+                previews.extend(self.preview(src, cam, plan, preview_every))
+            return cert
+
+        return self._guard(axis, run)
+
+    def preview(self, cloud: Cloud, cam: CameraIntrinsics, plan: Any, every: int) -> list[tuple[str, int, np.ndarray]]:
+        """Every ``every``-th frame of a plan (and its alpha = 0 frame) rendered as uint8 RGB."""
+        from ..core.render import render
+
+        idx = preview_indices(plan.alphas, every)
+        frames = render(cloud, cam, plan.axis, np.asarray(plan.alphas)[idx], background=self.config.background, device=self.device)
+        return [(plan.axis, int(i), preview_image(f)) for i, f in zip(idx, frames)]
+
+    def process(self, cloud: Cloud, intr: CameraIntrinsics, stamp_ns: int, dense_cloud: Cloud | None = None, *,
+                frame_id: str = "", preview_every: int = 0,
+                should_stop: Callable[[], bool] | None = None) -> FrameResult:
+        """Plan, render and certify every configured axis of one frame (in config order).
+
+        ``preview_every`` > 0 keeps every k-th rendered frame (and the alpha = 0 frame) as uint8 RGB
+        in ``FrameResult.previews``. ``should_stop`` is polled between axes (shutdown): the
+        remaining axes become ERROR certificates.
+        """
+        t0 = time.perf_counter()
+        certs: list[Certificate] = []
+        timings: dict[str, float] = {}
+        plans: dict[str, Any] = {}
+        previews: list[tuple[str, int, np.ndarray]] = []
+        cam = None
+        try:
+            cam = self.render_camera(intr)
+        except PwsError as exc:
+            certs = [self.error_for(a, str(exc)) for a in self.config.axes]
+        if cam is not None:
+            for axis in self.config.axes:
+                t1 = time.perf_counter()
+                if should_stop is not None and should_stop():
+                    certs.append(self.error_for(axis, "shutting down"))
+                else:
+                    certs.append(self.certify_axis(cloud, cam, axis, dense_cloud, preview_every, previews, plans))
+                timings[axis] = time.perf_counter() - t1
+        timings["total"] = time.perf_counter() - t0
+        return FrameResult(int(stamp_ns), frame_id or intr.frame_id, certs, plans, cam, timings, previews)
+
+
+def preview_indices(alphas: Any, every: int) -> list[int]:
+    """Indices ``0, k, 2k, ...`` of a grid plus the index of ``alpha = 0``."""
+    alphas = np.asarray(alphas)
+    keep = set(range(0, len(alphas), max(1, int(every))))
+    zero = np.nonzero(alphas == 0.0)[0]
+    if len(zero):
+        keep.add(int(zero[0]))
+    return sorted(keep)
+
+
+def preview_frames(axis: str, rendered: Any, every: int) -> list[tuple[str, int, np.ndarray]]:
+    """Every ``every``-th frame of a rendered plan and its alpha = 0 frame, as uint8 RGB."""
+    return [(axis, i, preview_image(rendered.frames[i])) for i in preview_indices(rendered.alphas, every)]
+
+
+__all__ = ["FrameCertifier", "FrameResult", "preview_frames", "preview_indices", "render_camera", "resolve_device_with_fallback"]

@@ -1,0 +1,156 @@
+"""The camera-input front end of ``cloud_listener`` and ``pipeline``, without ROS.
+
+:class:`InputAssembler` receives the raw input messages (callbacks call ``on_points``, ``on_depth``,
+``on_color``, ``on_info``, ``on_depth_info``) and returns a :class:`RawFrame` when one input frame is
+complete: a PointCloud2 alone (intrinsics from the latest CameraInfo, the organized grid, or
+``camera_info_file``), or a depth + colour pair matched by stamp within ``sync_tolerance_s`` (plus a
+CameraInfo: the latest one, or stamp-matched with ``camera_info_sync: stamp``). Callbacks only
+buffer; :func:`convert` (the slow part: message -> cloud) runs in the worker on the newest frame only.
+
+In ``input_mode: auto`` the first source that completes a frame is used from then on (the other is
+ignored and counted), so a camera publishing both points and images is not certified twice.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..core.camera import CameraIntrinsics
+from ..core.cloud import Cloud
+from ..core.errors import PwsError, require
+from . import msgconv
+from .config import PwsConfig, resolve_path
+from .sync import StampMatcher
+
+
+@dataclass
+class RawFrame:
+    """The messages of one input frame (converted later by :func:`convert`)."""
+
+    source: str                     # "pointcloud2" | "rgbd"
+    stamp_ns: int
+    header: Any
+    messages: dict[str, Any] = field(default_factory=dict)  # points | depth, color | info, depth_info
+
+
+@dataclass
+class InputFrame:
+    """One converted input frame: the one-frame cloud in the source optical frame and its camera."""
+
+    source: str
+    stamp_ns: int
+    header: Any
+    cloud: Cloud
+    intrinsics: CameraIntrinsics
+    has_color: bool = True
+
+
+class InputAssembler:
+    """Buffers input messages and yields complete :class:`RawFrame` s (thread-safe)."""
+
+    def __init__(self, config: PwsConfig):
+        self.config = config
+        self.mode = config.input_mode
+        self._lock = threading.Lock()
+        streams = ("depth", "color") + (("info",) if config.camera_info_sync == "stamp" else ())
+        self.matcher = StampMatcher(streams, tolerance_ns=int(round(config.sync_tolerance_s * 1e9)), queue_size=config.sync_queue_size)
+        self.latest_info: Any = None
+        self.latest_depth_info: Any = None
+        self.fallback: CameraIntrinsics | None = None
+        if config.camera_info_file:
+            self.fallback = CameraIntrinsics.from_yaml(resolve_path(config.camera_info_file, "camera info file"))
+        self.ignored = 0        # messages of the source not in use (auto mode, or wrong mode)
+        self.skipped = 0        # frames skipped by min_period_s
+        self.frames = 0         # complete frames produced
+        self._last_stamp: int | None = None
+        self.locked_source: str | None = None if self.mode == "auto" else self.mode
+
+    # -- helpers --
+    def _accept_source(self, source: str) -> bool:
+        if self.locked_source is None:
+            return True
+        if self.locked_source != source:
+            self.ignored += 1
+            return False
+        return True
+
+    def _emit(self, frame: RawFrame) -> RawFrame | None:
+        if self.locked_source is None:
+            self.locked_source = frame.source
+        if self.config.min_period_s > 0 and self._last_stamp is not None and \
+                0 <= frame.stamp_ns - self._last_stamp < self.config.min_period_s * 1e9:
+            self.skipped += 1
+            return None
+        self._last_stamp = frame.stamp_ns
+        self.frames += 1
+        return frame
+
+    @property
+    def dropped(self) -> int:
+        """Input messages that could not be matched into a frame (stamp matching)."""
+        return self.matcher.total_dropped()
+
+    # -- callbacks --
+    def on_info(self, msg: Any) -> RawFrame | None:
+        with self._lock:
+            self.latest_info = msg
+            if self.config.camera_info_sync == "stamp" and self._accept_source("rgbd"):
+                return self._match("info", msg)
+            return None
+
+    def on_depth_info(self, msg: Any) -> None:
+        with self._lock:
+            self.latest_depth_info = msg
+
+    def on_points(self, msg: Any) -> RawFrame | None:
+        with self._lock:
+            if not self._accept_source("pointcloud2"):
+                return None
+            msgs = {"points": msg}
+            if self.latest_info is not None:
+                msgs["info"] = self.latest_info
+            return self._emit(RawFrame("pointcloud2", msgconv.header_stamp_ns(msg), msg.header, msgs))
+
+    def on_depth(self, msg: Any) -> RawFrame | None:
+        with self._lock:
+            if not self._accept_source("rgbd"):
+                return None
+            return self._match("depth", msg)
+
+    def on_color(self, msg: Any) -> RawFrame | None:
+        with self._lock:
+            if not self._accept_source("rgbd"):
+                return None
+            return self._match("color", msg)
+
+    def _match(self, stream: str, msg: Any) -> RawFrame | None:
+        got = self.matcher.add(stream, msgconv.header_stamp_ns(msg), msg)
+        if got is None:
+            return None
+        msgs = dict(got.messages)
+        if "info" not in msgs:
+            if self.latest_info is None:
+                raise PwsError("depth and colour arrived but no CameraInfo yet on camera_info_topic")
+            msgs["info"] = self.latest_info
+        if self.latest_depth_info is not None:
+            msgs["depth_info"] = self.latest_depth_info
+        color = got.messages["color"]
+        return self._emit(RawFrame("rgbd", msgconv.header_stamp_ns(color), color.header, msgs))
+
+
+def convert(frame: RawFrame, config: PwsConfig, fallback: CameraIntrinsics | None = None) -> InputFrame:
+    """The one-frame cloud and camera of a :class:`RawFrame` (PwsError for bad input)."""
+    m = frame.messages
+    if frame.source == "pointcloud2":
+        cloud, intr, has_color = msgconv.cloud_and_intrinsics_from_pointcloud2(m["points"], m.get("info"), fallback)
+    else:
+        require(frame.source == "rgbd", f"unknown input source {frame.source!r}")
+        cloud, intr = msgconv.cloud_from_rgbd(m["depth"], m["color"], m["info"], m.get("depth_info"),
+                                              require_same_frame=config.require_same_frame)
+        has_color = True
+    require(len(cloud) > 0, f"the input frame has no valid point ({frame.source})")
+    return InputFrame(frame.source, frame.stamp_ns, frame.header, cloud, intr, has_color)
+
+
+__all__ = ["InputAssembler", "InputFrame", "RawFrame", "convert"]

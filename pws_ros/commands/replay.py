@@ -1,0 +1,230 @@
+"""``pws replay``: certify a rosbag2 recording offline and write the results as a bag."""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+from pathlib import Path
+from typing import Any
+
+from ..core.errors import PwsError, require
+
+DESCRIPTION = """\
+Certify every camera frame of a rosbag2 recording against camera motion, offline, with exactly the
+logic of the live `pipeline` node, and write the results as a new bag.
+
+Input: a bag directory (with metadata.yaml) or a bare .mcap / .db3 file; MCAP or sqlite3, split
+bags, zstd compression. The camera input is found by message type: an organized
+sensor_msgs/PointCloud2, or a depth Image (16UC1/mono16 mm or 32FC1 m) registered to a colour Image
+(rgb8/bgr8/rgba8/bgra8/mono8) plus the colour CameraInfo; --cloud-topic / --depth-topic /
+--color-topic / --info-topic choose topics explicitly. Frames are processed in header-stamp order,
+as fast as the CPU/GPU allows. Service-event topics and types whose definition does not parse are
+skipped with a warning; a truncated MCAP file is read up to the damage.
+
+Output (OUT, default <bag>_pws next to the bag; a rosbag2 MCAP bag, log time = source stamp, so
+`ros2 bag play OUT` replays the results as the live nodes published them; opens in Foxglove,
+PlotJuggler, rosbags, the mcap tools):
+  certification          diagnostic_msgs/DiagnosticArray, one per processed input frame; header =
+                         the source header; one status `pws/<axis>` per axis (level OK certified,
+                         WARN not certified / abstained, ERROR could not certify) with the keys
+                         label class_name certified radius unit p_a_lower sigma n alpha
+                         num_partitions classifier_calls latency_ms compute_ms, then status
+                         requested_radius method coverage n0 delta_alpha num_bounds
+                         frames_rendered reason node
+  certification/markers  visualization_msgs/MarkerArray (text per axis; --no-markers to omit)
+  plan/poses/<axis>      geometry_msgs/PoseArray, the partition camera poses (--no-poses to omit)
+  cloud, cloud/camera_info   the one-frame cloud and its camera (--write-cloud)
+  rendered/preview       every --preview-every-th rendered frame, rgb8 (--preview)
+  the input topics       copied unchanged, at their recorded log time (--copy-inputs)
+
+It prints a progress bar with ETA (on a terminal; --quiet hides it) and a summary: frames seen,
+certified, abstained, errors, certified radius per axis (mean / median), time per certificate,
+and, when the bag holds ground truth (/pws/ground_truth, written by `pws sim record`), clean
+accuracy, certified accuracy and certified accuracy vs radius.
+
+latency_ms is the time from the source stamp to publication: by default the processing time of the
+frame (as if it were certified the moment it arrived); with --realtime the simulated publication
+time (queueing included) minus the stamp. compute_ms is the measured time of each axis. The status
+`node` key is "pws_replay" (the live nodes write their own name).
+
+Parameters come from --config (default config/pws.yaml when present; the ROS parameter file of the
+nodes) and the options below override them. Same bag + same seed = identical certificates
+(latency_ms and compute_ms are measured times).
+
+Exit status: 0 when at least one certificate could be computed (frames that failed are written as
+ERROR statuses and counted); 2 when nothing could be done (bad arguments, unreadable or empty bag,
+no camera input, a model that does not load, or every frame failed), with one line naming why."""
+
+EPILOG = """\
+examples:
+  pws replay bags/demo                                   # writes bags/demo_pws, prints the summary
+  pws replay bags/demo --out /tmp/demo_out --overwrite --report /tmp/demo_report
+  pws replay bags/demo --axes tz --radius tz=5mm --n0 32 --n 128 --max-frames 5
+  pws replay my_robot.mcap --depth-topic /camera/aligned_depth_to_color/image_raw \\
+      --color-topic /camera/color/image_raw --info-topic /camera/color/camera_info --realtime
+  pws replay bags/demo --method pws          # the entire cloud, regenerated from the ground truth
+  pws replay bags/demo --json --quiet > summary.json"""
+
+_UNIT_SCALE = {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "rad": 1.0, "deg": math.pi / 180.0, "°": math.pi / 180.0}
+
+
+def parse_radius(text: str, axes: list[str] | tuple[str, ...]) -> dict[str, float]:
+    """``"tz=0.01,ry=0.25deg"`` -> ``{"tz": 0.01, "ry": 0.00436...}``; a bare value needs one axis.
+
+    Units: m, mm, cm for translations; rad, deg for rotations (default: m / rad)."""
+    from ..core.motion import UNITS, parse_axis
+
+    out: dict[str, float] = {}
+    items = [s.strip() for s in str(text).split(",") if s.strip()]
+    require(bool(items), "--radius is empty")
+    for item in items:
+        if "=" in item:
+            name, value = (s.strip() for s in item.split("=", 1))
+            axis = parse_axis(name)
+        else:
+            require(len(axes) == 1, f"--radius {text!r}: give axis=value pairs (e.g. tz=0.01,ry=0.0044) when certifying several axes")
+            axis, value = axes[0], item
+        m = re.fullmatch(r"([-+0-9.eE]+)\s*([a-z°]*)", value)
+        require(m is not None, f"--radius {item!r}: expected a number with an optional unit (m, mm, cm, rad, deg)")
+        num, unit = m.group(1), m.group(2) or UNITS[axis]
+        try:
+            v = float(num)
+        except ValueError:
+            raise PwsError(f"--radius {item!r}: {num!r} is not a number") from None
+        require(unit in _UNIT_SCALE, f"--radius {item!r}: unknown unit {unit!r} (m, mm, cm, rad, deg)")
+        linear = unit in ("m", "mm", "cm")
+        require(linear == (UNITS[axis] == "m"), f"--radius {item!r}: axis {axis} is measured in {UNITS[axis]}, not {unit}")
+        v *= _UNIT_SCALE[unit]
+        require(math.isfinite(v) and v > 0, f"--radius {item!r}: the radius must be positive and finite")
+        out[axis] = v
+    return out
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("replay", help="certify a rosbag2 recording offline; write the results as a bag + report",
+                              description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("bag", help="rosbag2 bag directory, or a bare .mcap / .db3 file")
+    o = p.add_argument_group("output")
+    o.add_argument("--out", default=None, help="output bag directory (default: <bag>_pws next to the bag); must not exist unless --overwrite")
+    o.add_argument("--overwrite", action="store_true", help="replace OUT if it is an existing bag directory (never any other folder)")
+    o.add_argument("--no-output", action="store_true", help="write no bag: only the summary (and --report)")
+    o.add_argument("--copy-inputs", action="store_true", help="copy the input topics (and the ground truth) into OUT unchanged")
+    o.add_argument("--write-cloud", action="store_true", help="write the one-frame cloud on 'cloud' (+ 'cloud/camera_info')")
+    o.add_argument("--preview", action="store_true", help="write rendered frames on 'rendered/preview' (rgb8)")
+    o.add_argument("--preview-every", type=int, default=None, help="with --preview: every k-th frame of a plan (and alpha = 0); default: config preview_every")
+    o.add_argument("--no-markers", action="store_true", help="omit 'certification/markers'")
+    o.add_argument("--no-poses", action="store_true", help="omit 'plan/poses/<axis>'")
+    o.add_argument("--namespace", default="", help="prefix of the output topics, as the nodes' namespace (default: none, /certification ...)")
+    o.add_argument("--no-compression", action="store_true", help="MCAP chunks without zstd")
+    o.add_argument("--report", default=None, metavar="DIR", help="write DIR/frames.csv (per frame and axis), DIR/summary.json, "
+                   "DIR/certified_accuracy_vs_radius.png and DIR/frames.png (radius and latency over time)")
+    o.add_argument("--json", action="store_true", help="print the summary as JSON on stdout instead of the table")
+    o.add_argument("--quiet", action="store_true", help="no progress bar and no info lines (warnings and the summary still print)")
+
+    c = p.add_argument_group("certification (override the config)")
+    c.add_argument("--config", default=None, help="ROS 2 parameter file (default: config/pws.yaml if found, else built-in defaults)")
+    c.add_argument("--axes", default=None, help="comma-separated axes among tx,ty,tz,rx,ry,rz (default: config axes, tz,ry)")
+    c.add_argument("--radius", default=None, help="requested radius per axis, e.g. tz=0.01,ry=0.25deg (units m, mm, cm, rad, deg; "
+                   "a bare number when one axis); default: config radius.<axis>")
+    c.add_argument("--method", default=None, choices=("pws_of", "pws", "pws_l", "cms"),
+                   help="pws_of (one-frame cloud, default), pws_l (Lipschitz), pws (the entire scene cloud: dense_cloud_path, or "
+                        "regenerated from the ground truth of a pws sim recording), cms (baseline)")
+    c.add_argument("--coverage", default=None, choices=("pairwise", "paper", "anchors"), help="coverage rule (default: config, pairwise)")
+    c.add_argument("--n0", type=int, default=None, help="noise samples selecting the top class")
+    c.add_argument("--n", type=int, default=None, help="noise samples per bound estimating p_A")
+    c.add_argument("--sigma", type=float, default=None, help="pixel noise sigma of the smoothed classifier (images in [0, 1])")
+    c.add_argument("--alpha", type=float, default=None, help="failure probability of each certificate (Bonferroni over its bounds)")
+    c.add_argument("--seed", type=int, default=None, help="random seed (same bag + seed = same certificates)")
+    c.add_argument("--device", default=None, help="cpu or cuda:N (falls back to cpu with a warning)")
+    c.add_argument("--batch-size", type=int, default=None, help="images per classifier call")
+    c.add_argument("--model", default=None, help="TorchScript classifier (default: config model_path, bags/models/classifier_sigma0.50.pt)")
+    c.add_argument("--classes", default=None, help="class-names file (default: beside the model)")
+    c.add_argument("--denoiser", default=None, help="optional TorchScript denoiser")
+    c.add_argument("--dense-cloud", default=None, help="method pws: the entire scene cloud (.npz) of a static scene")
+
+    i = p.add_argument_group("input")
+    i.add_argument("--cloud-topic", default=None, help="organized PointCloud2 topic (implies point-cloud input)")
+    i.add_argument("--depth-topic", default=None, help="depth Image topic registered to the colour camera (implies RGB-D input)")
+    i.add_argument("--color-topic", default=None, help="colour Image topic")
+    i.add_argument("--info-topic", default=None, help="CameraInfo of the colour camera")
+    i.add_argument("--depth-info-topic", default=None, help="CameraInfo of the depth stream (depth whose intrinsics differ is refused)")
+    i.add_argument("--truth-topic", default=None, help=f"ground-truth DiagnosticArray topic (default: /pws/ground_truth when present)")
+    i.add_argument("--sync-tolerance", type=float, default=None, help="largest depth/colour stamp difference of one frame, s (default: config, 0.02)")
+    i.add_argument("--max-frames", type=int, default=None, metavar="K", help="stop after K input frames")
+    i.add_argument("--realtime", action="store_true", help="the live node's online policy: a frame arriving (recorded stamps) while a "
+                   "certification would still run waits in a one-frame slot and is dropped if a newer one comes (drops are counted); "
+                   "default: certify every frame")
+    p.set_defaults(func=run)
+
+
+def build_config(args: argparse.Namespace):
+    """The PwsConfig of the command line: --config (or config/pws.yaml) then the options."""
+    from ..bridge.config import PwsConfig, default_config_path, load_config, validate_param
+
+    if args.config:
+        cfg = load_config(args.config, node_name="pipeline", check=False)
+    else:
+        try:
+            path = default_config_path()
+        except PwsError:
+            path = None
+        cfg = load_config(path, node_name="pipeline", check=False) if path is not None else PwsConfig()
+    params: dict[str, Any] = {}
+    if args.axes:
+        params["axes"] = validate_param("axes", args.axes)
+    axes = params.get("axes", cfg.axes)
+    if args.radius:
+        for axis, v in parse_radius(args.radius, axes).items():
+            params[f"radius.{axis}"] = v
+    simple = {"method": "method", "coverage": "coverage", "n0": "n0", "n": "n", "sigma": "sigma", "alpha": "alpha", "seed": "seed",
+              "device": "device", "batch_size": "batch_size", "model": "model_path", "classes": "classes_path",
+              "denoiser": "denoiser_path", "dense_cloud": "dense_cloud_path", "sync_tolerance": "sync_tolerance_s",
+              "preview_every": "preview_every"}
+    for attr, name in simple.items():
+        v = getattr(args, attr, None)
+        if v is not None:
+            params[name] = str(Path(v).expanduser().resolve()) if attr in ("model", "classes", "denoiser", "dense_cloud") else v
+    try:
+        return cfg.with_params(params)
+    except PwsError as exc:
+        raise PwsError(str(exc).replace("parameter ", "option/parameter ")) from None
+
+
+def options_from_args(args: argparse.Namespace):
+    from ..replay import ReplayOptions
+
+    cfg = build_config(args)
+    topics = {"cloud": args.cloud_topic, "depth": args.depth_topic, "color": args.color_topic, "info": args.info_topic,
+              "depth_info": args.depth_info_topic, "truth": args.truth_topic}
+    require(args.max_frames is None or args.max_frames >= 1, f"--max-frames must be >= 1, got {args.max_frames}")
+    return ReplayOptions(
+        bag=Path(args.bag), config=cfg, out=Path(args.out) if args.out else None, overwrite=args.overwrite,
+        write_output=not args.no_output, topics={k: v for k, v in topics.items() if v}, max_frames=args.max_frames,
+        realtime=args.realtime, copy_inputs=args.copy_inputs, write_cloud=args.write_cloud, preview=args.preview,
+        markers=not args.no_markers, poses=not args.no_poses, namespace=args.namespace, compress=not args.no_compression,
+        report_dir=Path(args.report) if args.report else None, quiet=args.quiet)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..replay import replay
+
+    try:
+        opts = options_from_args(args)
+        result = replay(opts)
+    except PwsError as exc:
+        print(f"pws replay: error: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(result.summary, indent=2))
+    else:
+        print(result.table())
+        if result.report_files:
+            print(f"report: {', '.join(str(p) for p in result.report_files)}")
+    if result.exit_code != 0 and result.message:
+        print(f"pws replay: error: {result.message}", file=sys.stderr)
+    return result.exit_code
+
+
+__all__ = ["build_config", "options_from_args", "parse_radius", "register", "run"]

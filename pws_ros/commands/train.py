@@ -1,0 +1,82 @@
+"""``pws train``: rebuild the demo classifier(s) and denoiser from the procedural world (seeded, CPU)."""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from ..core.errors import PwsError, require
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--preset", choices=("full", "tiny"), default="full", help="full: the shipped recipe (~20-30 min on 2 CPU cores); tiny: seconds, for tests")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=2, help="processes generating training views")
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    p.add_argument("--cache-dir", default=None, help="cache of generated views (default $PWS_SIM_CACHE or <tmp>/pws_sim_cache; '' disables)")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("train", help="train the demo classifier / denoiser on the procedural world",
+                              description="Seeded, CPU-only training on views of pws_ros.sim.")
+    sub = p.add_subparsers(dest="train_command", metavar="{all,classifier,denoiser}")
+    sub.required = True
+
+    a = sub.add_parser("all", help="classifiers for sigma 0.25 and 0.5, the sigma-0.5 denoiser, classes.txt, training_report.json")
+    a.add_argument("--out", required=True, help="output folder (e.g. bags/models)")
+    a.add_argument("--no-denoiser", action="store_true")
+    _common(a)
+    a.set_defaults(func=run)
+
+    c = sub.add_parser("classifier", help="one classifier trained with Gaussian noise of --sigma")
+    c.add_argument("--out", required=True, help="model file to write (.pt, TorchScript + pws.json + <stem>.classes.txt)")
+    c.add_argument("--sigma", type=float, default=0.5)
+    c.add_argument("--epochs", type=int, default=None, help="default: the preset's")
+    _common(c)
+    c.set_defaults(func=run)
+
+    d = sub.add_parser("denoiser", help="a DnCNN-like denoiser for --sigma")
+    d.add_argument("--out", required=True, help="denoiser file to write (.pt, TorchScript)")
+    d.add_argument("--sigma", type=float, default=0.5)
+    d.add_argument("--epochs", type=int, default=None, help="default: the preset's")
+    _common(d)
+    d.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..sim import train as T
+    from ..sim.dataset import default_cache_dir, training_set
+
+    cmd = getattr(args, "train_command", None)
+    require(args.workers >= 1, f"--workers must be >= 1, got {args.workers}")
+    require(args.threads >= 1, f"--threads must be >= 1, got {args.threads}")
+    cache = default_cache_dir() if args.cache_dir is None else (None if args.cache_dir == "" else Path(args.cache_dir))
+    if cmd == "all":
+        report = T.build_models(args.out, preset=args.preset, seed=args.seed, workers=args.workers, cache_dir="" if cache is None else cache,
+                                threads=args.threads, skip_denoiser=args.no_denoiser)
+        print(json.dumps(report.get("heldout", {}), indent=2))
+        print(f"wrote models to {args.out} ({report['total_seconds']:.0f}s)")
+        return 0
+    if cmd not in ("classifier", "denoiser"):
+        raise PwsError(f"unknown train command {cmd!r}")
+    require(args.sigma >= 0, f"--sigma must be >= 0, got {args.sigma}")
+    require(args.epochs is None or args.epochs >= 1, f"--epochs must be >= 1, got {args.epochs}")
+    import torch
+
+    torch.set_num_threads(args.threads)
+    p = T.PRESETS[args.preset]
+    X, Y = training_set(p.train_scenes, p.views_per_scene, seed=args.seed, width=p.width, height=p.height, move_prob=p.move_prob,
+                        workers=args.workers, cache_dir=cache)
+    out = Path(args.out)
+    if cmd == "classifier":
+        from ..core.model import save_model
+        from ..sim import CLASS_NAMES
+
+        model = T.train_classifier(X, Y, args.sigma, epochs=args.epochs or p.epochs_05, seed=args.seed, width=p.net_width, log=print)
+        save_model(model, out, CLASS_NAMES, input_size=(p.height, p.width), meta={"sigma": args.sigma, "preset": args.preset, "seed": args.seed})
+    else:
+        den = T.train_denoiser(X, args.sigma, epochs=args.epochs or p.denoiser_epochs, seed=args.seed, channels=p.denoiser_channels,
+                               depth=p.denoiser_depth, log=print)
+        T.save_denoiser(den, out, args.sigma, (p.height, p.width), meta={"preset": args.preset, "seed": args.seed})
+    print(f"wrote {out}")
+    return 0

@@ -1,0 +1,169 @@
+"""Pieces shared by the node modules. No rclpy import at module level: rclpy enters only through
+:mod:`._ros`, imported inside :func:`start`, so every node module imports where ROS is absent."""
+from __future__ import annotations
+
+import importlib.util
+import sys
+import threading
+import time
+import traceback
+from typing import Any, Callable
+
+from ..bridge import msgbuild
+from ..bridge.inputs import InputAssembler, RawFrame
+from ..bridge.sync import LatestSlot, RateMeter
+from ..core.errors import PwsError
+
+ROS_MISSING = ("rclpy (ROS 2 Jazzy) is not importable: install ROS 2 Jazzy and `source /opt/ros/jazzy/setup.bash` "
+               "(then build this package with colcon); without ROS use the `pws` command")
+
+
+def rclpy_available() -> bool:
+    return importlib.util.find_spec("rclpy") is not None
+
+
+def start(node_name: str, logic_class: Callable[..., Any], args: list[str] | None = None) -> int:
+    """Run a node (``logic_class(ctx)`` around a :class:`._ros.NodeContext`); exit status 2 with a
+    clear message when rclpy is missing or the start-up fails with PwsError."""
+    if not rclpy_available():
+        print(f"{node_name}: {ROS_MISSING}", file=sys.stderr)
+        return 2
+    from . import _ros
+
+    return _ros.run(node_name, lambda node: logic_class(_ros.NodeContext(node, node_name)), args)
+
+
+class Worker:
+    """A daemon thread that processes the newest item of a :class:`LatestSlot` with ``fn``.
+
+    Exceptions never end the thread: PwsError is logged as a warning, anything else as an error
+    with its traceback; ``last_error`` holds the last item's error ("" after a success).
+    """
+
+    def __init__(self, name: str, fn: Callable[[Any], None], log: Callable[[str, str], None]):
+        self.slot: LatestSlot[Any] = LatestSlot()
+        self.fn = fn
+        self.log = log
+        self.last_error = ""
+        self.busy = False
+        self.processed = 0
+        self.rate = RateMeter()
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._loop, name=name, daemon=True)
+        self.thread.start()
+
+    def submit(self, item: Any) -> bool:
+        """Hand over the newest input; True if an older one was dropped."""
+        return self.slot.put(item)
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            item = self.slot.take(timeout=0.2)
+            if item is None:
+                continue
+            self.busy = True
+            try:
+                self.fn(item)
+                self.last_error = ""
+                self.processed += 1
+                self.rate.tick()
+            except PwsError as exc:
+                self.last_error = str(exc)
+                self.log("warn", str(exc))
+            except Exception as exc:  # keep the node alive
+                self.last_error = f"{type(exc).__name__}: {exc}"
+                self.log("error", f"worker failed: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+            finally:
+                self.busy = False
+
+    def close(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        self.slot.close()
+        self.thread.join(timeout)
+
+
+class Throttle:
+    """Log a repeated message at most once per ``period`` seconds (with the number suppressed)."""
+
+    def __init__(self, period: float = 5.0):
+        self.period = period
+        self._last: dict[str, float] = {}
+        self._count: dict[str, int] = {}
+
+    def __call__(self, log: Callable[[str, str], None], level: str, message: str, key: str | None = None) -> None:
+        key = key or message
+        now = time.monotonic()
+        if now - self._last.get(key, -1e9) >= self.period:
+            n = self._count.pop(key, 0)
+            log(level, message + (f" (and {n} more like it)" if n else ""))
+            self._last[key] = now
+        else:
+            self._count[key] = self._count.get(key, 0) + 1
+
+
+class HealthPublisher:
+    """Publishes ``<node>: health`` on ``/diagnostics`` every ``health_period_s``."""
+
+    def __init__(self, ctx: Any, counters: Callable[[], dict[str, Any]]):
+        self.ctx = ctx
+        self.counters = counters
+        self.pub = ctx.publisher(ctx.types.DiagnosticArray, "/diagnostics", kind="reliable", depth=10)
+        self.timer = ctx.timer(ctx.config.health_period_s, self.publish)
+
+    def publish(self) -> None:
+        c = dict(self.counters())
+        extra = c.pop("extra", {})
+        extra = {**extra, "qos_incompatible_events": self.ctx.qos_events}
+        hdr = msgbuild.make_header(self.ctx.types, max(0, self.ctx.now_ns()), "")
+        msg = msgbuild.health_status(hdr, node_name=self.ctx.name, types=self.ctx.types, extra=extra, **c)
+        self.pub.publish(msg)
+
+
+class InputFrontend:
+    """Subscribes to the configured camera inputs and hands each complete :class:`RawFrame` to
+    ``on_frame`` (callbacks only buffer; conversion happens in the consumer's worker)."""
+
+    def __init__(self, ctx: Any, on_frame: Callable[[RawFrame], None]):
+        self.ctx = ctx
+        self.on_frame = on_frame
+        cfg = ctx.config
+        self.assembler = InputAssembler(cfg)
+        self.throttle = Throttle()
+        self.received = 0
+        T = ctx.types
+        self.subs = []
+        mode = cfg.input_mode
+        if mode in ("auto", "pointcloud2"):
+            self.subs.append(ctx.subscription(T.PointCloud2, cfg.points_topic, self._wrap(self.assembler.on_points)))
+        if mode in ("auto", "rgbd"):
+            self.subs.append(ctx.subscription(T.Image, cfg.depth_topic, self._wrap(self.assembler.on_depth)))
+            self.subs.append(ctx.subscription(T.Image, cfg.color_topic, self._wrap(self.assembler.on_color)))
+        # CameraInfo is needed by both modes (optional for organized clouds)
+        self.subs.append(ctx.subscription(T.CameraInfo, cfg.camera_info_topic, self._wrap(self.assembler.on_info)))
+        if cfg.depth_camera_info_topic:
+            self.subs.append(ctx.subscription(T.CameraInfo, cfg.depth_camera_info_topic, self._wrap(self.assembler.on_depth_info)))
+        topics = ([cfg.points_topic] if mode != "rgbd" else []) + ([cfg.depth_topic, cfg.color_topic] if mode != "pointcloud2" else [])
+        ctx.log("info", f"input mode {mode}: listening on {', '.join(ctx.resolve(t) for t in topics)} "
+                        f"+ {ctx.resolve(cfg.camera_info_topic)}")
+
+    def _wrap(self, handler: Callable[[Any], RawFrame | None]) -> Callable[[Any], None]:
+        def cb(msg: Any) -> None:
+            self.received += 1
+            try:
+                frame = handler(msg)
+            except PwsError as exc:
+                self.throttle(self.ctx.log, "warn", f"input: {exc}")
+                return
+            if frame is not None:
+                if self.assembler.frames == 1:
+                    self.ctx.log("info", f"first input frame from {frame.source}")
+                self.on_frame(frame)
+        return cb
+
+    @property
+    def dropped(self) -> int:
+        return self.assembler.dropped

@@ -1,0 +1,63 @@
+"""``cloud_listener``: builds the one-frame coloured cloud in the camera optical frame.
+
+Inputs (sensor-data QoS by default): an organized or unorganized ``PointCloud2`` on ``points_topic``,
+or a registered depth ``Image`` (16UC1 mm / 32FC1 m) on ``depth_topic`` + colour ``Image`` on
+``color_topic`` + ``CameraInfo`` on ``camera_info_topic``, matched by stamp. Outputs (reliable):
+``cloud`` (PointCloud2 x, y, z, rgb; source header) and ``cloud/camera_info`` (the intrinsics, same
+header). Health on ``/diagnostics``. Bad input is logged (throttled) and counted, never fatal.
+"""
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+from ..bridge import msgbuild
+from ..bridge.inputs import RawFrame, convert
+from ._common import HealthPublisher, InputFrontend, Worker, start
+
+NODE_NAME = "cloud_listener"
+
+
+class CloudListenerNode:
+    def __init__(self, ctx: Any):
+
+        self.ctx = ctx
+        ctx.on_change = self._on_change
+        T = ctx.types
+        self.pub_cloud = ctx.publisher(T.PointCloud2, "cloud")
+        self.pub_info = ctx.publisher(T.CameraInfo, "cloud/camera_info")
+        self.published = 0
+        self.worker = Worker("pws-listener", self._process, ctx.log)
+        self.frontend = InputFrontend(ctx, self.worker.submit)
+        self.health = HealthPublisher(ctx, self._counters)
+
+    def _on_change(self, cfg: Any) -> None:
+        self.frontend.assembler.config = cfg
+        self.frontend.assembler.matcher.tolerance_ns = int(round(cfg.sync_tolerance_s * 1e9))
+
+    def _process(self, raw: RawFrame) -> None:
+        T = self.ctx.types
+        frame = convert(raw, self.ctx.config, self.frontend.assembler.fallback)
+        # camera_info first: the planner pairs the two by stamp
+        self.pub_info.publish(msgbuild.camera_info_from_intrinsics(raw.header, frame.intrinsics, T))
+        self.pub_cloud.publish(msgbuild.cloud_to_pointcloud2(raw.header, frame.cloud, T))
+        self.published += 1
+        if not frame.has_color and self.published == 1:
+            self.ctx.log("warn", "the PointCloud2 has no rgb/rgba field: points are grey (0.5)")
+
+    def _counters(self) -> dict[str, Any]:
+        w = self.worker
+        return {"rate_hz": w.rate.rate(), "frames_in": self.frontend.assembler.frames, "frames_processed": self.published,
+                "frames_dropped": w.slot.dropped + self.frontend.dropped, "device": "cpu", "last_error": "",
+                "warning": w.last_error, "extra": {"input_messages": self.frontend.received}}
+
+    def close(self) -> None:
+        self.worker.close()
+
+
+def main(args: list[str] | None = None) -> None:
+    sys.exit(start(NODE_NAME, CloudListenerNode, args))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,84 @@
+"""``partition_planner``: plans, per input frame, the camera poses of every configured axis.
+
+Subscribes (reliable): ``cloud`` (PointCloud2) + ``cloud/camera_info`` from ``cloud_listener``,
+paired by exact stamp. Publishes (reliable): ``plan`` (std_msgs/String JSON plan bundle: for each
+axis its partition grid, or why it could not be planned; see :mod:`pws_ros.bridge.scheme`) and
+``plan/poses/<axis>`` (PoseArray of the camera poses in the source optical frame, source stamp,
+partition order). Plans are made for the render camera (the model's input size). Method ``pws``
+plans on the dense cloud of ``dense_cloud_path``.
+"""
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+from ..bridge import msgbuild, msgconv, scheme
+from ..bridge.sync import StampMatcher
+from ._common import HealthPublisher, Worker, start
+
+NODE_NAME = "partition_planner"
+
+
+class PartitionPlannerNode:
+    def __init__(self, ctx: Any):
+        from ..bridge.engine import FrameCertifier
+
+        self.ctx = ctx
+        T = ctx.types
+        cfg = ctx.config
+        self.engine = FrameCertifier(cfg, log=ctx.log, load=False)
+        self.engine.render_size  # noqa: B018 - reads the model's input size now (PwsError -> exit 2)
+        if cfg.method == "pws":
+            self.engine.dense_cloud  # noqa: B018
+        self.matcher = StampMatcher(("cloud", "info"), tolerance_ns=0, queue_size=cfg.sync_queue_size)
+        self.pub_plan = ctx.publisher(T.String, "plan")
+        self.pub_poses: dict[str, Any] = {}
+        self.planned = 0
+        self.worker = Worker("pws-planner", self._process, ctx.log)
+        self.subs = [
+            ctx.subscription(T.PointCloud2, "cloud", lambda m: self._add("cloud", m), kind=cfg.output_qos, depth=cfg.output_qos_depth),
+            ctx.subscription(T.CameraInfo, "cloud/camera_info", lambda m: self._add("info", m), kind=cfg.output_qos, depth=cfg.output_qos_depth),
+        ]
+        self.health = HealthPublisher(ctx, self._counters)
+
+    def _add(self, stream: str, msg: Any) -> None:
+        got = self.matcher.add(stream, msgconv.header_stamp_ns(msg), msg)
+        if got is not None:
+            self.worker.submit(got)
+
+    def _poses_pub(self, axis: str) -> Any:
+        if axis not in self.pub_poses:
+            self.pub_poses[axis] = self.ctx.publisher(self.ctx.types.PoseArray, f"plan/poses/{axis}")
+        return self.pub_poses[axis]
+
+    def _process(self, matched: Any) -> None:
+        T = self.ctx.types
+        self.engine.config = cfg = self.ctx.config
+        cloud_msg, info_msg = matched["cloud"], matched["info"]
+        cloud, _ = msgconv.cloud_from_pointcloud2(cloud_msg)
+        intr = msgconv.intrinsics_from_camera_info(info_msg)
+        bundle = self.engine.plan_bundle(cloud, intr, matched.stamp_ns, cloud_msg.header.frame_id)
+        if cfg.publish_poses:
+            for axis, plan in bundle.plans.items():
+                self._poses_pub(axis).publish(msgbuild.plan_to_pose_array(cloud_msg.header, plan, T))
+        self.pub_plan.publish(scheme.plan_bundle_message(bundle, T))
+        for axis, reason in bundle.errors.items():
+            self.ctx.log("warn", f"frame {matched.stamp_ns} axis {axis}: cannot plan: {reason}")
+        self.planned += 1
+
+    def _counters(self) -> dict[str, Any]:
+        w = self.worker
+        return {"rate_hz": w.rate.rate(), "frames_in": self.matcher.matched, "frames_processed": self.planned,
+                "frames_dropped": w.slot.dropped + self.matcher.total_dropped(), "device": self.engine.device,
+                "last_error": "", "warning": w.last_error}
+
+    def close(self) -> None:
+        self.worker.close()
+
+
+def main(args: list[str] | None = None) -> None:
+    sys.exit(start(NODE_NAME, PartitionPlannerNode, args))
+
+
+if __name__ == "__main__":
+    main()

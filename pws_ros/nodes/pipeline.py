@@ -1,0 +1,123 @@
+"""``pipeline``: the four nodes in one process (listener -> planner -> projector -> certifier).
+
+Frames and bounds are handed over in memory (no serialisation of thousands of frames). Callbacks only
+buffer the inputs; a worker thread certifies the newest complete input frame (older ones are dropped
+and counted: certification is slower than the camera), so callbacks and parameter services stay
+responsive.
+
+Subscribes (sensor-data QoS by default): ``points_topic`` (PointCloud2) or ``depth_topic`` +
+``color_topic`` (Image) + ``camera_info_topic`` (CameraInfo) [+ ``depth_camera_info_topic``].
+Publishes (reliable): ``certification`` (DiagnosticArray, one per processed input frame, header =
+source header, one status ``pws/<axis>`` per axis; key schema in :mod:`pws_ros.bridge.msgbuild`),
+``certification/markers`` (MarkerArray), ``cloud`` (PointCloud2) + ``cloud/camera_info``,
+``plan/poses/<axis>`` (PoseArray), ``rendered/preview`` (Image rgb8) and ``/diagnostics`` (health).
+"""
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+from ..bridge import msgbuild
+from ..bridge.inputs import RawFrame, convert
+from ..core.errors import PwsError
+from ._common import HealthPublisher, InputFrontend, Worker, start
+
+NODE_NAME = "pipeline"
+
+
+class PipelineNode:
+    """The logic of the pipeline node, composed around an rclpy ``Node``."""
+
+    def __init__(self, ctx: Any):
+        from ..bridge.engine import FrameCertifier
+
+        self.ctx = ctx
+        ctx.on_change = self._on_change
+        T = ctx.types
+        self.engine = FrameCertifier(ctx.config, log=ctx.log)  # loads the model now (PwsError -> exit 2)
+        self.pub_cert = ctx.publisher(T.DiagnosticArray, "certification")
+        self.pub_markers = ctx.publisher(T.MarkerArray, "certification/markers")
+        self.pub_cloud = ctx.publisher(T.PointCloud2, "cloud")
+        self.pub_info = ctx.publisher(T.CameraInfo, "cloud/camera_info")
+        self.pub_preview = ctx.publisher(T.Image, "rendered/preview")
+        self.pub_poses: dict[str, Any] = {}
+        self.frame_errors = 0
+        self.last_frame_error = ""
+        self.worker = Worker("pws-pipeline", self._process, ctx.log)
+        self.frontend = InputFrontend(ctx, self._on_frame)
+        self.health = HealthPublisher(ctx, self._counters)
+        ctx.log("info", f"pipeline ready: axes {', '.join(ctx.config.axes)}, method {ctx.config.method}, "
+                        f"coverage {ctx.config.coverage}, device {self.engine.device}")
+
+    def _on_change(self, cfg: Any) -> None:
+        self.frontend.assembler.config = cfg
+        self.frontend.assembler.matcher.tolerance_ns = int(round(cfg.sync_tolerance_s * 1e9))
+
+    def _on_frame(self, raw: RawFrame) -> None:
+        self.worker.submit(raw)
+
+    def _poses_pub(self, axis: str) -> Any:
+        if axis not in self.pub_poses:
+            self.pub_poses[axis] = self.ctx.publisher(self.ctx.types.PoseArray, f"plan/poses/{axis}")
+        return self.pub_poses[axis]
+
+    def _process(self, raw: RawFrame) -> None:
+        ctx, T = self.ctx, self.ctx.types
+        cfg = ctx.config
+        self.engine.config = cfg  # parameter changes apply between frames
+        try:
+            frame = convert(raw, cfg, self.frontend.assembler.fallback)
+        except PwsError as exc:
+            self.frame_errors += 1
+            self.last_frame_error = f"input: {exc}"
+            certs = [self.engine.error_for(a, f"input: {exc}") for a in cfg.axes]
+            self.pub_cert.publish(msgbuild.certificates_to_diagnostic_array(
+                raw.header, certs, node_name=ctx.name, types=T,
+                latency_ms=(ctx.now_ns() - raw.stamp_ns) / 1e6, compute_ms=0.0))
+            raise
+        if cfg.publish_cloud:
+            self.pub_cloud.publish(msgbuild.cloud_to_pointcloud2(raw.header, frame.cloud, T))
+            self.pub_info.publish(msgbuild.camera_info_from_intrinsics(raw.header, frame.intrinsics, T))
+        result = self.engine.process(frame.cloud, frame.intrinsics, raw.stamp_ns, frame_id=raw.header.frame_id,
+                                     preview_every=cfg.preview_every if cfg.publish_preview else 0,
+                                     should_stop=lambda: self.worker.stopping)
+        # the certification goes last: when it arrives, the frame's poses, previews and markers are out
+        if cfg.publish_poses:
+            for axis, plan in result.plans.items():
+                self._poses_pub(axis).publish(msgbuild.plan_to_pose_array(raw.header, plan, T))
+        for _axis, _index, img in result.previews:
+            self.pub_preview.publish(msgbuild.image_from_numpy(raw.header, img, T))
+        if cfg.publish_markers:
+            self.pub_markers.publish(msgbuild.markers_for(raw.header, result.certificates, T))
+        latency_ms = (ctx.now_ns() - raw.stamp_ns) / 1e6
+        self.pub_cert.publish(msgbuild.certificates_to_diagnostic_array(
+            raw.header, result.certificates, node_name=ctx.name, types=T, latency_ms=latency_ms,
+            compute_ms=result.compute_ms))
+        errors = [c for c in result.certificates if c.status == "error"]
+        self.last_frame_error = errors[0].reason if len(errors) == len(result.certificates) and errors else ""
+        ctx.log("info", f"frame {raw.stamp_ns}: " + "; ".join(c.summary() for c in result.certificates))
+
+    def _counters(self) -> dict[str, Any]:
+        w = self.worker
+        return {
+            "rate_hz": w.rate.rate(),
+            "frames_in": self.frontend.assembler.frames,
+            "frames_processed": w.processed,
+            "frames_dropped": w.slot.dropped + self.frontend.dropped,
+            "device": self.engine.device,
+            "last_error": self.last_frame_error,
+            "warning": self.engine.device_warning,
+            "extra": {"busy": w.busy, "input_messages": self.frontend.received, "unmatched_inputs": self.frontend.dropped,
+                      "ignored_inputs": self.frontend.assembler.ignored, "skipped_by_min_period": self.frontend.assembler.skipped},
+        }
+
+    def close(self) -> None:
+        self.worker.close()
+
+
+def main(args: list[str] | None = None) -> None:
+    sys.exit(start(NODE_NAME, PipelineNode, args))
+
+
+if __name__ == "__main__":
+    main()

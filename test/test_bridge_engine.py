@@ -1,0 +1,202 @@
+"""FrameCertifier (pws_ros.bridge.engine): the per-frame pipeline of the nodes, checked against the
+core's certify() directly, the four-process path (messages + assembler) against the in-memory path,
+per-axis error isolation, camera rescaling to the model's input size and the CUDA fallback."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from pws_ros.bridge import msgbuild, scheme
+from pws_ros.bridge.config import config_from_params
+from pws_ros.bridge.engine import FrameCertifier, preview_indices, render_camera, resolve_device_with_fallback
+from pws_ros.bridge.sync import PartitionAssembler
+from pws_ros.core.camera import CameraIntrinsics
+from pws_ros.core.certify import certify
+from pws_ros.core.cloud import Cloud, cloud_from_rgbd
+from pws_ros.core.errors import PwsError
+from pws_ros.core.model import load_model
+from pws_ros.core.render import render
+
+T = msgbuild.rosbags_types()
+FAST = {"n0": 16, "n": 32, "batch_size": 64, "axes": ["tz", "ry"]}
+
+
+def scene(intr: CameraIntrinsics, seed: int = 0) -> Cloud:
+    """A reddish box in front of a wall, seen by ``intr``."""
+    h, w = intr.height, intr.width
+    depth = np.full((h, w), 2.0)
+    depth[h // 4: 3 * h // 4, w // 4: 5 * w // 8] = 1.2
+    rgb = np.random.default_rng(seed).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    rgb[..., 0] = 230  # red channel high: MeanThresholdNet says class 1
+    return cloud_from_rgbd(depth, rgb, intr)
+
+
+@pytest.fixture
+def model_path(make_model_file):
+    return make_model_file(input_size=(24, 32))  # MeanThresholdNet(0.5) on the red channel, 2 classes
+
+
+def make_engine(model_path, **params):
+    logs = []
+    cfg = config_from_params({**FAST, "model_path": str(model_path), **params})
+    return FrameCertifier(cfg, log=lambda level, msg: logs.append((level, msg))), logs
+
+
+def test_process_matches_core_certify(model_path, small_camera):
+    eng, _ = make_engine(model_path)
+    cloud = scene(small_camera)
+    res = eng.process(cloud, small_camera, 123, frame_id="cam")
+    assert [c.axis for c in res.certificates] == ["tz", "ry"]
+    assert res.stamp_ns == 123 and res.frame_id == "cam" and res.camera == small_camera
+    assert set(res.plans) == {"tz", "ry"} and set(res.compute_ms) == {"tz", "ry"}
+    model = load_model(model_path)
+    for c in res.certificates:
+        assert c.status in ("certified", "not_certified") and c.label == 1 and c.class_name == "c1"
+        assert c.method == "pws_of" and c.coverage == "pairwise" and c.n == 32 and c.n0 == 16
+        assert {"plan", "render", "inference", "statistics", "total"} <= set(c.timings)
+        ref = certify(cloud, small_camera, model, c.axis, eng.config.radius_for(c.axis), "pws_of", eng.certify_config())
+        assert ref.p_a_lower == c.p_a_lower and ref.radius == c.radius and ref.status == c.status
+    again = eng.process(cloud, small_camera, 123)
+    assert [c.p_a_lower for c in again.certificates] == [c.p_a_lower for c in res.certificates]  # seeded
+
+
+def test_camera_is_rescaled_to_the_model_input(model_path):
+    big = CameraIntrinsics(64, 48, 60.0, 60.0, 31.5, 23.5, "cam")
+    eng, logs = make_engine(model_path, axes=["tz"])
+    res = eng.process(scene(big), big, 1)
+    assert res.camera == big.scaled(32, 24)
+    assert res.certificates[0].status != "error", res.certificates[0].reason
+    assert not any("aspect ratio" in m for _, m in logs)
+    wide = CameraIntrinsics(64, 36, 60.0, 60.0, 31.5, 17.5, "cam")
+    res = eng.process(scene(wide), wide, 2)
+    assert res.camera.shape == (24, 32) and any("aspect ratio changes" in m for _, m in logs)
+
+
+def test_render_size_override_and_mismatch_is_an_error_certificate(model_path, small_camera):
+    eng, _ = make_engine(model_path, axes=["tz"], render_width=16, render_height=12)
+    res = eng.process(scene(small_camera), small_camera, 1)
+    (c,) = res.certificates
+    assert c.status == "error" and "expects 32x24" in c.reason and "16x12" in c.reason
+
+
+def test_one_bad_axis_does_not_stop_the_others(model_path, small_camera):
+    eng, _ = make_engine(model_path, axes=["tx", "tz"], max_partitions=3, **{"radius.tx": 0.05})
+    res = eng.process(scene(small_camera), small_camera, 1)
+    tx, tz = res.certificates
+    assert tx.status == "error" and "more than max_partitions=3" in tx.reason and tx.requested_radius == 0.05
+    assert tx.sigma == 0.5 and tx.n == 32 and "tx" not in res.plans
+    assert tz.status != "error" and "tz" in res.plans
+
+
+def test_empty_cloud_gives_error_certificates(model_path, small_camera):
+    eng, _ = make_engine(model_path)
+    res = eng.process(Cloud(np.zeros((0, 3)), np.zeros((0, 3))), small_camera, 1)
+    assert [c.status for c in res.certificates] == ["error", "error"]
+    assert all("empty" in c.reason for c in res.certificates)
+
+
+def test_unexpected_exceptions_are_contained(model_path, small_camera, monkeypatch):
+    eng, logs = make_engine(model_path, axes=["tz"])
+    monkeypatch.setattr(eng, "plan_axis", lambda *a: (_ for _ in ()).throw(RuntimeError("CUDA out of memory")))
+    (c,) = eng.process(scene(small_camera), small_camera, 1).certificates
+    assert c.status == "error" and c.reason == "internal error (RuntimeError): CUDA out of memory"
+    assert logs and logs[-1][0] == "error"
+
+
+def test_four_process_path_gives_the_same_certificate(model_path, small_camera):
+    """plan bundle -> render -> frames/bounds as messages (CDR) -> assembler -> certify_assembled
+    equals the pipeline's in-memory certify()."""
+    eng, _ = make_engine(model_path, axes=["tx", "tz"], **{"radius.tx": 0.05})
+    cloud = scene(small_camera)
+    S = 1_700_000_000_000_000_000
+    bundle = eng.plan_bundle(cloud, small_camera, S, "cam")
+    assert not bundle.errors and bundle.camera == small_camera
+    wire = scheme.parse_plan_bundle_message(T.typestore.deserialize_cdr(
+        T.typestore.serialize_cdr(scheme.plan_bundle_message(bundle, T), "std_msgs/msg/String"), "std_msgs/msg/String"))
+    asm = PartitionAssembler()
+    asm.expect(S, wire.expected(), info=wire)
+    for axis, plan in wire.plans.items():
+        rendered = eng.render_axis(cloud, wire.camera, plan)
+        n = len(plan.alphas)
+        for i in range(n):
+            tag, frame = scheme.parse_frame_message(scheme.frame_message(S, axis, i, n, rendered.frames[i], T))
+            asm.add_frame(tag.stamp_ns, tag.axis, tag.index, tag.count, frame)
+        b = scheme.parse_bounds_message(scheme.bounds_message(S, axis, rendered, T))
+        asm.add_bounds(S, axis, b.count, b)
+    (frame,) = asm.pop_ready()
+    four = eng.certify_assembled(frame)
+    one = eng.process(cloud, small_camera, S)
+    assert four.frame_id == "cam" and [c.axis for c in four.certificates] == ["tx", "tz"]
+    for a, b in zip(four.certificates, one.certificates):
+        assert a.status == b.status and a.radius == b.radius and a.p_a_lower == b.p_a_lower
+        assert a.num_partitions == b.num_partitions and a.bounds["max_pair_bound_sq"] == pytest.approx(b.bounds["max_pair_bound_sq"])
+
+
+def test_incomplete_set_is_an_error_in_certify_assembled(model_path, small_camera):
+    eng, _ = make_engine(model_path, axes=["tz"])
+    asm = PartitionAssembler()
+    bundle = eng.plan_bundle(scene(small_camera), small_camera, 5, "cam")
+    asm.expect(5, bundle.expected(), info=bundle)
+    asm.add_frame(5, "tz", 1, len(bundle.plans["tz"].alphas), np.zeros((24, 32, 3), np.float32))
+    (frame,) = asm.pop_ready()
+    (c,) = eng.certify_assembled(frame).certificates
+    assert c.status == "error" and "lost frame(s) 0" in c.reason
+
+
+def test_cms_only_in_the_pipeline(model_path, small_camera):
+    eng, _ = make_engine(model_path, axes=["tz"], method="cms", n0=8, n=16)
+    bundle = eng.plan_bundle(scene(small_camera), small_camera, 1)
+    assert "only available in the pipeline" in bundle.errors["tz"]
+    (c,) = eng.process(scene(small_camera), small_camera, 1).certificates
+    assert c.method == "cms" and c.status != "error", c.reason
+
+
+def test_pws_uses_the_dense_cloud(model_path, small_camera, tmp_path):
+    dense = scene(small_camera, seed=1)
+    path = tmp_path / "dense.npz"
+    dense.save(path)
+    eng, logs = make_engine(model_path, axes=["tz"], method="pws", dense_cloud_path=str(path))
+    assert any("loaded dense cloud" in m for _, m in logs)
+    one_frame = Cloud(np.array([[0.0, 0.0, 1.0]]), np.array([[0.0, 0.0, 0.0]]))
+    (c,) = eng.process(one_frame, small_camera, 1).certificates
+    ref = certify(dense, small_camera, load_model(model_path), "tz", 0.01, "pws", eng.certify_config())
+    assert c.method == "pws" and c.p_a_lower == ref.p_a_lower and c.label == ref.label
+    with pytest.raises(PwsError, match="dense cloud file not found"):
+        make_engine(model_path, method="pws", dense_cloud_path=str(tmp_path / "none.npz"))
+
+
+def test_previews(model_path, small_camera):
+    eng, _ = make_engine(model_path, axes=["tx"], **{"radius.tx": 0.05})
+    cloud = scene(small_camera)
+    res = eng.process(cloud, small_camera, 1, preview_every=2)
+    plan = res.plans["tx"]
+    idx = [i for _, i, _ in res.previews]
+    assert idx == preview_indices(plan.alphas, 2) and int(np.nonzero(plan.alphas == 0)[0][0]) in idx
+    frames = render(cloud, small_camera, "tx", plan.alphas)
+    for _, i, img in res.previews:
+        assert img.dtype == np.uint8 and img.shape == (24, 32, 3)
+        np.testing.assert_array_equal(img, np.clip(np.rint(frames[i].astype(np.float64) * 255), 0, 255).astype(np.uint8))
+
+
+def test_device_fallback_and_bad_device(model_path):
+    logs = []
+    if torch.cuda.is_available():
+        pytest.skip("CUDA is available here: no fallback to test")
+    assert resolve_device_with_fallback("cuda:0", lambda level, m: logs.append((level, m))) == "cpu"
+    assert logs == [("warn", "device cuda:0 requested but CUDA is not available; falling back to cpu")]
+    eng, logs = make_engine(model_path, device="cuda:1")
+    assert eng.device == "cpu" and eng.device_warning == "cuda:1 unavailable, using cpu"
+    with pytest.raises(PwsError, match="invalid device 'tpu'"):
+        resolve_device_with_fallback("tpu")
+
+
+def test_missing_model_fails_at_start(tmp_path):
+    with pytest.raises(PwsError, match="model file not found: .*nope.pt"):
+        FrameCertifier(config_from_params({"model_path": str(tmp_path / "nope.pt")}))
+
+
+def test_render_camera_helper(small_camera):
+    assert render_camera(small_camera, None) is small_camera
+    assert render_camera(small_camera, (24, 32)) is small_camera
+    assert render_camera(small_camera, (12, 16)) == small_camera.scaled(16, 12)

@@ -1,0 +1,126 @@
+"""The input front end of cloud_listener/pipeline (pws_ros.bridge.inputs), with rosbags messages."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pws_ros.bridge import msgbuild
+from pws_ros.bridge.config import config_from_params
+from pws_ros.bridge.inputs import InputAssembler, convert
+from pws_ros.core.camera import CameraIntrinsics
+from pws_ros.core.cloud import Cloud
+from pws_ros.core.errors import PwsError
+
+T = msgbuild.rosbags_types()
+CAM = CameraIntrinsics(8, 6, 10.0, 10.0, 3.5, 2.5, "cam")
+MS = 1_000_000
+
+
+def depth_msg(stamp, frame="cam", w=8, h=6):
+    mm = np.full((h, w), 1500, np.uint16)
+    mm[0, 0] = 0
+    return msgbuild.image_from_numpy(msgbuild.make_header(T, stamp, frame), mm, T)
+
+
+def color_msg(stamp, frame="cam", w=8, h=6):
+    return msgbuild.image_from_numpy(msgbuild.make_header(T, stamp, frame), np.full((h, w, 3), 200, np.uint8), T, encoding="bgr8")
+
+
+def info_msg(stamp=0, cam=CAM):
+    return msgbuild.camera_info_from_intrinsics(msgbuild.make_header(T, stamp, cam.frame_id), cam, T)
+
+
+def points_msg(stamp, organized=True):
+    rows, cols = np.mgrid[0:6, 0:8]
+    z = np.full((6, 8), 2.0)
+    pts = np.stack([(cols - CAM.cx) * z / CAM.fx, (rows - CAM.cy) * z / CAM.fy, z], -1).reshape(-1, 3)
+    cloud = Cloud(pts, np.full((48, 3), 0.25))
+    return msgbuild.cloud_to_pointcloud2(msgbuild.make_header(T, stamp, "cam"), cloud, T, organized_shape=(6, 8) if organized else None)
+
+
+def test_rgbd_frames_are_matched_and_converted():
+    cfg = config_from_params({"input_mode": "rgbd", "sync_tolerance_s": 0.005})
+    asm = InputAssembler(cfg)
+    assert asm.on_info(info_msg()) is None
+    assert asm.on_depth(depth_msg(100 * MS)) is None
+    raw = asm.on_color(color_msg(103 * MS))
+    assert raw is not None and raw.source == "rgbd" and raw.stamp_ns == 103 * MS and raw.header.frame_id == "cam"
+    frame = convert(raw, cfg)
+    assert len(frame.cloud) == 47 and frame.intrinsics == CAM and frame.has_color
+    np.testing.assert_allclose(frame.cloud.colors, 200 / 255, atol=1e-6)
+    # beyond tolerance: no frame
+    asm.on_depth(depth_msg(200 * MS))
+    assert asm.on_color(color_msg(210 * MS)) is None
+
+
+def test_rgbd_without_camera_info_is_reported():
+    asm = InputAssembler(config_from_params({"input_mode": "rgbd"}))
+    asm.on_depth(depth_msg(1))
+    with pytest.raises(PwsError, match="no CameraInfo yet"):
+        asm.on_color(color_msg(1))
+
+
+def test_stamp_synced_camera_info():
+    asm = InputAssembler(config_from_params({"input_mode": "rgbd", "camera_info_sync": "stamp", "sync_tolerance_s": 0.0}))
+    asm.on_depth(depth_msg(5))
+    assert asm.on_color(color_msg(5)) is None  # waits for the CameraInfo of that stamp
+    raw = asm.on_info(info_msg(5))
+    assert raw is not None and raw.messages["info"].header.stamp.nanosec == 5
+
+
+def test_unregistered_input_fails_in_convert_with_the_hint():
+    cfg = config_from_params({"input_mode": "rgbd", "depth_camera_info_topic": "depth/camera_info"})
+    asm = InputAssembler(cfg)
+    asm.on_info(info_msg())
+    asm.on_depth_info(info_msg(cam=CameraIntrinsics(8, 6, 7.0, 7.0, 3.5, 2.5, "cam")))
+    asm.on_depth(depth_msg(1))
+    raw = asm.on_color(color_msg(1))
+    with pytest.raises(PwsError, match="not registered.*aligned_depth_to_color"):
+        convert(raw, cfg)
+
+
+def test_pointcloud2_input_with_and_without_info():
+    cfg = config_from_params({"input_mode": "pointcloud2"})
+    asm = InputAssembler(cfg)
+    frame = convert(asm.on_points(points_msg(1)), cfg)  # organized: intrinsics from the grid
+    assert frame.intrinsics.fx == pytest.approx(10.0) and frame.intrinsics.cx == pytest.approx(3.5)
+    asm.on_info(info_msg(cam=CAM))
+    raw = asm.on_points(points_msg(2, organized=False))
+    frame = convert(raw, cfg)
+    assert frame.intrinsics == CAM and len(frame.cloud) == 48
+    asm2 = InputAssembler(cfg)
+    with pytest.raises(PwsError, match="unorganized PointCloud2"):
+        convert(asm2.on_points(points_msg(3, organized=False)), cfg)
+
+
+def test_camera_info_file_fallback(tmp_path):
+    path = tmp_path / "cam.yaml"
+    CAM.to_yaml(path)
+    cfg = config_from_params({"input_mode": "pointcloud2", "camera_info_file": str(path)})
+    asm = InputAssembler(cfg)
+    frame = convert(asm.on_points(points_msg(1, organized=False)), cfg, asm.fallback)
+    assert (frame.intrinsics.fx, frame.intrinsics.width) == (10.0, 8)
+
+
+def test_auto_mode_locks_onto_the_first_source():
+    asm = InputAssembler(config_from_params({"input_mode": "auto"}))
+    asm.on_info(info_msg())
+    assert asm.on_points(points_msg(1)).source == "pointcloud2"
+    assert asm.on_depth(depth_msg(2)) is None and asm.on_color(color_msg(2)) is None
+    assert asm.ignored == 2 and asm.locked_source == "pointcloud2"
+
+
+def test_min_period_skips_frames():
+    asm = InputAssembler(config_from_params({"input_mode": "pointcloud2", "min_period_s": 0.5}))
+    got = [asm.on_points(points_msg(t * 100 * MS)) is not None for t in range(12)]
+    assert got == [True, False, False, False, False, True, False, False, False, False, True, False]
+    assert asm.skipped == 9 and asm.frames == 3
+
+
+def test_unmatched_inputs_are_counted_and_bounded():
+    asm = InputAssembler(config_from_params({"input_mode": "rgbd", "sync_queue_size": 2, "sync_tolerance_s": 0.0}))
+    asm.on_info(info_msg())
+    for i in range(5):
+        asm.on_depth(depth_msg(i))
+    assert asm.dropped == 3
+    assert asm.on_color(color_msg(4)) is not None and asm.dropped == 4  # depth 3 can never match now

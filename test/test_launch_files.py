@@ -1,0 +1,111 @@
+"""The launch files: structure checked with recording stand-ins for the ``launch`` API where ROS is
+absent (they only record constructor arguments; rclpy is not involved), and loaded with the real
+``launch`` package where ROS 2 is installed."""
+from __future__ import annotations
+
+import importlib.util
+import sys
+import types
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+LAUNCH = REPO / "launch"
+INPUTS = {"points": "/camera/depth/color/points", "depth": "/camera/aligned_depth_to_color/image_raw",
+          "color": "/camera/color/image_raw", "camera_info": "/camera/color/camera_info"}
+
+
+class _Rec:
+    def __init__(self, *args, **kwargs):
+        self.args, self.kwargs = args, kwargs
+
+
+def _stub_modules() -> dict[str, types.ModuleType]:
+    mods = {}
+    for name in ("launch", "launch.actions", "launch.substitutions", "launch_ros", "launch_ros.actions",
+                 "launch_ros.descriptions", "launch_ros.substitutions"):
+        mods[name] = types.ModuleType(name)
+
+    class LaunchDescription(_Rec):
+        pass
+
+    class LaunchConfiguration(_Rec):
+        pass
+
+    mods["launch"].LaunchDescription = LaunchDescription
+    mods["launch.actions"].DeclareLaunchArgument = type("DeclareLaunchArgument", (_Rec,), {})
+    mods["launch.substitutions"].LaunchConfiguration = LaunchConfiguration
+    mods["launch.substitutions"].PathJoinSubstitution = type("PathJoinSubstitution", (_Rec,), {})
+    mods["launch_ros.actions"].Node = type("Node", (_Rec,), {})
+    mods["launch_ros.descriptions"].ParameterValue = type("ParameterValue", (_Rec,), {})
+    mods["launch_ros.substitutions"].FindPackageShare = type("FindPackageShare", (_Rec,), {})
+    return mods
+
+
+def _load(path: Path, monkeypatch):
+    for name, mod in _stub_modules().items():
+        monkeypatch.setitem(sys.modules, name, mod)
+    spec = importlib.util.spec_from_file_location(path.stem.replace(".", "_"), path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.generate_launch_description()
+
+
+def _split(ld):
+    entities = ld.args[0]
+    args = {e.args[0]: e.kwargs for e in entities if type(e).__name__ == "DeclareLaunchArgument"}
+    nodes = [e.kwargs for e in entities if type(e).__name__ == "Node"]
+    return args, nodes
+
+
+needs_stubs = pytest.mark.skipif(importlib.util.find_spec("launch_ros") is not None, reason="the real launch packages are installed")
+
+
+@needs_stubs
+def test_pipeline_launch_structure(monkeypatch):
+    args, nodes = _split(_load(LAUNCH / "pws.launch.py", monkeypatch))
+    assert {"config_file", "namespace", "use_sim_time", "log_level"} <= set(args)
+    assert all(args[a]["description"] for a in args)
+    for arg, default in INPUTS.items():
+        assert args[arg]["default_value"] == default
+    (node,) = nodes
+    assert node["package"] == "pws_ros" and node["executable"] == "pipeline" and node["name"] == "pipeline"
+    remapped = {src: dst.args[0] for src, dst in node["remappings"]}
+    assert remapped == {default: arg for arg, default in INPUTS.items()}
+    assert node["parameters"][0].args == ("config_file",)
+    assert node["parameters"][1]["use_sim_time"].kwargs == {"value_type": bool}
+    assert node["namespace"].args == ("namespace",)
+
+
+@needs_stubs
+def test_four_process_launch_structure(monkeypatch):
+    args, nodes = _split(_load(LAUNCH / "pws_nodes.launch.py", monkeypatch))
+    assert {"config_file", "namespace", "use_sim_time", "points", "depth", "color", "camera_info"} <= set(args)
+    assert [n["executable"] for n in nodes] == ["cloud_listener", "partition_planner", "projector", "certifier"]
+    assert nodes[0]["remappings"] and not any(n["remappings"] for n in nodes[1:])
+    assert all(n["parameters"][0].args == ("config_file",) for n in nodes)
+
+
+def test_default_topic_names_match_the_config():
+    from pws_ros.bridge.config import PwsConfig
+
+    cfg = PwsConfig()
+    assert (cfg.points_topic, cfg.depth_topic, cfg.color_topic, cfg.camera_info_topic) == (
+        INPUTS["points"], INPUTS["depth"], INPUTS["color"], INPUTS["camera_info"])
+
+
+def test_setup_installs_launch_and_config():
+    text = (REPO / "setup.py").read_text()
+    assert 'glob("launch/*.py")' in text and 'glob("config/*.yaml")' in text
+
+
+@pytest.mark.rclpy
+def test_launch_files_load_with_the_real_launch_package():
+    pytest.importorskip("launch_ros", reason="launch_ros is not installed")
+    from launch.launch_description_sources import get_launch_description_from_python_launch_file
+
+    for name in ("pws.launch.py", "pws_nodes.launch.py"):
+        ld = get_launch_description_from_python_launch_file(str(LAUNCH / name))
+        names = {a.name for a in ld.get_launch_arguments()}
+        assert {"config_file", "namespace", "use_sim_time", "points", "depth", "color", "camera_info"} <= names

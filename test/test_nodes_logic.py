@@ -1,0 +1,344 @@
+"""The node classes driven without ROS: each gets an in-memory context (the interface of
+``pws_ros.nodes._ros.NodeContext``) whose topics deliver rosbags messages after a CDR round trip,
+one callback at a time from a dispatcher thread (like a single-threaded executor). This is not a
+stand-in for rclpy: the rclpy glue itself is exercised by test_nodes_rclpy.py where ROS 2 exists."""
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from collections import defaultdict
+
+import numpy as np
+import pytest
+
+from pws_ros.bridge import msgbuild, msgconv, scheme
+from pws_ros.bridge.config import config_from_params
+from pws_ros.core.camera import CameraIntrinsics
+
+T = msgbuild.rosbags_types()
+TS = T.typestore
+T0 = 1_700_000_000_000_000_000
+CAM = CameraIntrinsics(32, 24, 30.0, 30.0, 15.5, 11.5, "cam")
+
+
+class Bus:
+    """Topics: publish serialises (CDR) and queues; one dispatcher thread runs the callbacks."""
+
+    def __init__(self, drop=None):
+        self.subs = defaultdict(list)
+        self.published = defaultdict(list)
+        self.drop = drop or (lambda topic, msg: False)
+        self.q: queue.Queue = queue.Queue()
+        self.errors = []
+        self._stop = False
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def publish(self, topic, msg):
+        name = msg.__msgtype__
+        copy = TS.deserialize_cdr(TS.serialize_cdr(msg, name), name)
+        self.published[topic].append(copy)
+        if not self.drop(topic, copy):
+            self.q.put((topic, copy))
+
+    def _run(self):
+        while not self._stop:
+            try:
+                topic, msg = self.q.get(timeout=0.05)
+            except queue.Empty:
+                continue
+            for cb in list(self.subs[topic]):
+                try:
+                    cb(msg)
+                except Exception as exc:  # a callback must never raise
+                    self.errors.append((topic, exc))
+
+    def idle(self):
+        return self.q.empty()
+
+    def close(self):
+        self._stop = True
+        self.thread.join(2)
+
+
+class _Pub:
+    def __init__(self, bus, topic):
+        self.bus, self.topic = bus, topic
+
+    def publish(self, msg):
+        self.bus.publish(self.topic, msg)
+
+
+class Context:
+    """The NodeContext interface over a Bus."""
+
+    def __init__(self, bus, name, **params):
+        self.bus, self.name, self.types = bus, name, T
+        self.config = config_from_params(params)
+        self.on_change = None
+        self.qos_events = 0
+        self.logs = []
+        self.timers = []
+        self.qos = {}
+
+    def log(self, level, message):
+        self.logs.append((level, message))
+
+    def now_ns(self):
+        return time.time_ns()
+
+    def resolve(self, topic):
+        return topic if topic.startswith("/") else "/" + topic
+
+    def publisher(self, msg_type, topic, *, kind=None, depth=None):
+        self.qos[self.resolve(topic)] = (kind or self.config.output_qos, depth or self.config.output_qos_depth)
+        return _Pub(self.bus, self.resolve(topic))
+
+    def subscription(self, msg_type, topic, callback, *, kind=None, depth=None):
+        self.qos[self.resolve(topic)] = (kind or self.config.input_qos, depth or self.config.input_qos_depth)
+        self.bus.subs[self.resolve(topic)].append(callback)
+
+    def timer(self, period, callback):
+        self.timers.append(callback)
+        return callback
+
+    def tick(self):
+        for cb in self.timers:
+            cb()
+
+
+def frame_messages(stamp_ns, color_size=(32, 24)):
+    mm = np.full((24, 32), 2000, np.uint16)
+    mm[6:18, 8:20] = 1200
+    w, h = color_size
+    rgb = np.random.default_rng(stamp_ns % 997).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    rgb[..., 0] = 230
+    hdr = msgbuild.make_header(T, stamp_ns, "cam")
+    return {"/cam/info": msgbuild.camera_info_from_intrinsics(hdr, CAM, T), "/cam/depth": msgbuild.image_from_numpy(hdr, mm, T),
+            "/cam/color": msgbuild.image_from_numpy(hdr, rgb, T)}
+
+
+def params(model_path, **extra):
+    p = {"model_path": str(model_path), "n0": 16, "n": 32, "axes": ["tx", "tz"], "radius.tx": 0.05, "input_mode": "rgbd",
+         "depth_topic": "/cam/depth", "color_topic": "/cam/color", "camera_info_topic": "/cam/info", "preview_every": 2}
+    p.update(extra)
+    return p
+
+
+def wait_for(cond, timeout=60, tick=()):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        for ctx in tick:
+            ctx.tick()
+        if cond():
+            return True
+        time.sleep(0.02)
+    return bool(cond())
+
+
+def play(bus, stamps, got, wait=True, tick=()):
+    for k, stamp in enumerate(stamps):
+        for topic, msg in frame_messages(stamp).items():
+            bus.publish(topic, msg)
+        if wait:
+            assert wait_for(lambda: len(got()) >= k + 1, tick=tick), f"no certification for frame {k}"
+
+
+@pytest.fixture
+def bus():
+    b = Bus()
+    yield b
+    b.close()
+    assert not b.errors, b.errors
+
+
+@pytest.fixture
+def model_path(make_model_file):
+    return make_model_file(input_size=(24, 32))
+
+
+def test_pipeline_one_certification_per_frame(bus, model_path):
+    from pws_ros.nodes.pipeline import PipelineNode
+
+    ctx = Context(bus, "pipeline", **params(model_path))
+    node = PipelineNode(ctx)
+    try:
+        stamps = [T0 + k * 100_000_000 for k in range(3)]
+        play(bus, stamps, lambda: bus.published["/certification"])
+        certs = bus.published["/certification"]
+        assert [msgconv.stamp_to_ns(m.header.stamp) for m in certs] == stamps
+        for m in certs:
+            parsed = msgbuild.parse_certification(m)
+            assert list(parsed) == ["tx", "tz"] and m.header.frame_id == "cam"
+            assert all(v["level"] in (0, 1) and v["class_name"] == "c1" and v["latency_ms"] > 0 for v in parsed.values())
+        assert len(bus.published["/cloud"]) == 3 and len(bus.published["/cloud/camera_info"]) == 3
+        poses = bus.published["/plan/poses/tx"]
+        n_tx = msgbuild.parse_certification(certs[-1])["tx"]["num_partitions"]
+        assert len(poses) == 3 and len(poses[0].poses) == n_tx and poses[0].header.frame_id == "cam"
+        assert len(bus.published["/rendered/preview"]) > 0 and len(bus.published["/certification/markers"]) == 3
+        # QoS: sensor data for camera inputs, reliable for results
+        assert ctx.qos["/cam/depth"][0] == "sensor_data" and ctx.qos["/certification"][0] == "reliable"
+        assert wait_for(lambda: node.worker.processed == 3 and not node.worker.busy)
+        ctx.tick()  # health timer
+        wait_for(bus.idle)
+        (h,) = msgbuild.diagnostic_array_to_dicts(bus.published["/diagnostics"][-1])
+        assert h["name"] == "pipeline: health" and h["level"] == 0
+        assert h["values"]["frames_processed"] == "3" and h["values"]["frames_dropped"] == "0" and h["values"]["device"] == "cpu"
+    finally:
+        node.close()
+
+
+def test_pipeline_online_policy_drops_old_frames(bus, model_path):
+    from pws_ros.nodes.pipeline import PipelineNode
+
+    node = PipelineNode(Context(bus, "pipeline", **params(model_path)))
+    gate = threading.Event()
+    process = node.worker.fn
+
+    def gated(item):  # a certification slower than the camera
+        gate.wait(30)
+        process(item)
+
+    node.worker.fn = gated
+    try:
+        stamps = [T0 + k * 10_000_000 for k in range(6)]
+        play(bus, stamps, None, wait=False)
+        assert wait_for(lambda: bus.idle() and node.frontend.assembler.frames == 6)
+        st = node.worker.slot.stats()  # never a queue: at most one input waits for the worker
+        assert st["pending"] <= 1 and st["accepted"] == 6 == st["taken"] + st["dropped"] + st["pending"]
+        gate.set()
+
+        def done():
+            st = node.worker.slot.stats()
+            return st["taken"] + st["dropped"] == 6 and node.worker.processed == st["taken"]
+
+        assert wait_for(done)
+        got = [msgconv.stamp_to_ns(m.header.stamp) for m in bus.published["/certification"]]
+        assert got == sorted(got) and got[-1] == stamps[-1]  # the newest frame is always certified
+        assert node.worker.processed in (1, 2) and node.worker.slot.dropped == 6 - node.worker.processed
+        ctx_health = node._counters()
+        assert ctx_health["frames_dropped"] == node.worker.slot.dropped and ctx_health["frames_in"] == 6
+    finally:
+        node.close()
+
+
+def test_pipeline_reports_bad_input_as_error_statuses(bus, model_path):
+    from pws_ros.nodes.pipeline import PipelineNode
+
+    node = PipelineNode(Context(bus, "pipeline", **params(model_path)))
+    try:
+        msgs = frame_messages(T0, color_size=(40, 24))
+        for topic, msg in msgs.items():
+            bus.publish(topic, msg)
+        assert wait_for(lambda: len(bus.published["/certification"]) == 1)
+        parsed = msgbuild.parse_certification(bus.published["/certification"][0])
+        for v in parsed.values():
+            assert v["level"] == 2 and "not registered (different sizes)" in v["message"]
+        assert not bus.published["/cloud"]
+    finally:
+        node.close()
+
+
+def four_nodes(bus, model_path, **extra):
+    from pws_ros.nodes.certifier import CertifierNode
+    from pws_ros.nodes.cloud_listener import CloudListenerNode
+    from pws_ros.nodes.partition_planner import PartitionPlannerNode
+    from pws_ros.nodes.projector import ProjectorNode
+
+    p = params(model_path, **extra)
+    ctxs = {n: Context(bus, n, **p) for n in ("cloud_listener", "partition_planner", "projector", "certifier")}
+    nodes = [CloudListenerNode(ctxs["cloud_listener"]), PartitionPlannerNode(ctxs["partition_planner"]),
+             ProjectorNode(ctxs["projector"]), CertifierNode(ctxs["certifier"])]
+    return ctxs, nodes
+
+
+def test_four_processes_match_the_pipeline(model_path):
+    from pws_ros.nodes.pipeline import PipelineNode
+
+    stamps = [T0 + k * 100_000_000 for k in range(2)]
+    bus1 = Bus()
+    pipe = PipelineNode(Context(bus1, "pipeline", **params(model_path)))
+    try:
+        play(bus1, stamps, lambda: bus1.published["/certification"])
+    finally:
+        pipe.close()
+        bus1.close()
+    bus2 = Bus()
+    ctxs, nodes = four_nodes(bus2, model_path)
+    try:
+        play(bus2, stamps, lambda: bus2.published["/certification"], tick=[ctxs["certifier"]])
+        assert not bus1.errors and not bus2.errors
+        one, four = bus1.published["/certification"], bus2.published["/certification"]
+        assert len(four) == 2
+        for a, b in zip(one, four):
+            assert a.header.stamp == b.header.stamp and a.header.frame_id == b.header.frame_id
+            pa, pb = msgbuild.parse_certification(a), msgbuild.parse_certification(b)
+            for axis in ("tx", "tz"):
+                for key in ("label", "certified", "radius", "p_a_lower", "num_partitions", "classifier_calls", "level"):
+                    assert pa[axis][key] == pb[axis][key], (axis, key)
+        n = sum(int(msgbuild.parse_certification(b)[ax]["num_partitions"]) for b in four for ax in ("tx", "tz"))
+        assert len(bus2.published["/rendered/frames"]) == n and len(bus2.published["/rendered/bounds"]) == 4
+        assert len(bus2.published["/plan"]) == 2 and len(bus2.published["/plan/poses/tz"]) == 2
+        tag = scheme.parse_frame_tag(bus2.published["/rendered/frames"][0].header.frame_id)
+        assert tag.stamp_ns == stamps[0] and tag.index == 0
+    finally:
+        for nd in nodes:
+            nd.close()
+        bus2.close()
+
+
+def test_four_processes_never_certify_an_incomplete_set(model_path):
+    lost = []
+
+    def drop(topic, msg):  # lose frame 1 of axis tx in transport, once
+        if topic == "/rendered/frames" and msg.header.frame_id.split("/")[1:3] == ["tx", "1"] and not lost:
+            lost.append(msg.header.frame_id)
+            return True
+        return False
+
+    bus = Bus(drop=drop)
+    ctxs, nodes = four_nodes(bus, model_path)
+    try:
+        play(bus, [T0], lambda: bus.published["/certification"], tick=[ctxs["certifier"]])
+        parsed = msgbuild.parse_certification(bus.published["/certification"][0])
+        assert parsed["tx"]["level"] == 2 and parsed["tx"]["certified"] is False
+        assert "lost frame(s) 1" in parsed["tx"]["message"]
+        assert parsed["tz"]["level"] in (0, 1)
+        assert not bus.errors
+    finally:
+        for nd in nodes:
+            nd.close()
+        bus.close()
+
+
+def test_four_processes_planning_errors_are_reported(model_path):
+    bus = Bus()
+    ctxs, nodes = four_nodes(bus, model_path, max_partitions=3)
+    try:
+        play(bus, [T0], lambda: bus.published["/certification"], tick=[ctxs["certifier"]])
+        parsed = msgbuild.parse_certification(bus.published["/certification"][0])
+        assert parsed["tx"]["level"] == 2 and "max_partitions=3" in parsed["tx"]["message"]
+        assert parsed["tz"]["level"] in (0, 1)
+        plan = scheme.parse_plan_bundle_message(bus.published["/plan"][0])
+        assert "tx" in plan.errors and "tz" in plan.plans
+    finally:
+        for nd in nodes:
+            nd.close()
+        bus.close()
+
+
+def test_certifier_ignores_malformed_messages(bus, model_path):
+    from pws_ros.nodes.certifier import CertifierNode
+
+    ctx = Context(bus, "certifier", **params(model_path))
+    node = CertifierNode(ctx)
+    try:
+        bus.publish("/plan", T.String(data="{not json"))
+        bus.publish("/rendered/frames", msgbuild.image_from_numpy(msgbuild.make_header(T, 1, "garbage"), np.zeros((2, 2, 3), np.float32), T))
+        bus.publish("/rendered/errors", T.String(data="[]"))
+        assert wait_for(lambda: node.bad_messages == 3)
+        assert not bus.published["/certification"]
+        assert [lvl for lvl, _ in ctx.logs if lvl == "warn"]
+    finally:
+        node.close()

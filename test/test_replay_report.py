@@ -1,0 +1,143 @@
+"""The replay summary / report (pws_ros.report) against brute force, and the progress bar."""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import random
+
+import pytest
+
+from pws_ros.core.result import Certificate
+from pws_ros.progress import ProgressBar, eta_seconds, format_bar, format_duration
+from pws_ros.report import FrameRecord, format_table, radius_grid, summarize, write_report
+
+STATUSES = ("certified", "not_certified", "abstain", "error")
+
+
+def _cert(axis, status, radius, label, requested):
+    return Certificate(axis=axis, unit="m" if axis.startswith("t") else "rad", method="pws_of", coverage="pairwise",
+                       requested_radius=requested, status=status, certified=status == "certified",
+                       radius=requested if status == "certified" else (0.0 if status in ("abstain", "error") else radius),
+                       label=label, class_name=f"c{label}", p_a_lower=[0.9] if status != "error" else [], n=32, n0=16,
+                       reason="boom" if status == "error" else "")
+
+
+def random_records(rng: random.Random, n: int, requested: dict[str, float]):
+    recs = []
+    for i in range(n):
+        truth = rng.randrange(3) if rng.random() < 0.8 else None
+        certs, correct, compute = [], {}, {}
+        for axis, b in requested.items():
+            status = rng.choice(STATUSES)
+            c = _cert(axis, status, rng.choice([0.0, b / 4, b / 2, 3 * b / 4]), rng.randrange(3), b)
+            certs.append(c)
+            compute[axis] = rng.uniform(1, 100)
+            if truth is not None:
+                correct[axis] = c.status != "error" and c.label == truth
+        recs.append(FrameRecord(i, 10**9 + i * 10**8, "cam", "rgbd", certs, compute, rng.uniform(1, 200), 1.0,
+                                truth_label=truth, truth_class="" if truth is None else f"c{truth}", correct=correct))
+    return recs
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_summary_matches_brute_force(seed):
+    rng = random.Random(seed)
+    requested = {"tz": 0.01, "ry": 0.004}
+    recs = random_records(rng, rng.randrange(1, 30), requested)
+    s = summarize(recs, axes=list(requested), units={"tz": "m", "ry": "rad"}, requested=requested, frames_seen=len(recs) + 2,
+                  dropped=2, wall_s=3.0)
+    assert s["frames"]["seen"] == len(recs) + 2 and s["frames"]["processed"] == len(recs) and s["frames"]["dropped_realtime"] == 2
+    json.dumps(s, allow_nan=False)  # strictly JSON
+    for axis, b in requested.items():
+        a = s["axes"][axis]
+        certs = [r.cert(axis) for r in recs]
+        for st, key in zip(STATUSES, ("certified", "not_certified", "abstained", "errors")):
+            assert a[key] == sum(c.status == st for c in certs)
+        ran = [c.radius for c in certs if c.status != "error"]
+        if ran:
+            assert a["radius_mean"] == pytest.approx(sum(ran) / len(ran))
+            srt = sorted(ran)
+            mid = len(srt) // 2
+            med = srt[mid] if len(srt) % 2 else (srt[mid - 1] + srt[mid]) / 2
+            assert a["radius_median"] == pytest.approx(med)
+        else:
+            assert a["radius_mean"] is None
+        with_truth = [r for r in recs if r.truth_label is not None]
+        assert a["with_truth"] == len(with_truth)
+        if with_truth:
+            n = len(with_truth)
+            assert a["clean_accuracy"] == pytest.approx(sum(r.correct[axis] for r in with_truth) / n)
+            assert a["certified_accuracy"] == pytest.approx(sum(r.correct[axis] and r.cert(axis).certified for r in with_truth) / n)
+            for r_, acc in a["certified_accuracy_vs_radius"]:
+                ok = sum(1 for r in with_truth if r.correct[axis] and r.cert(axis).status in ("certified", "not_certified")
+                         and r.cert(axis).radius >= r_ - 1e-12)
+                assert acc == pytest.approx(ok / n)
+            curve = [acc for _r, acc in a["certified_accuracy_vs_radius"]]
+            assert all(x >= y - 1e-12 for x, y in zip(curve, curve[1:]))  # non-increasing in the radius
+            assert curve[-1] == pytest.approx(a["certified_accuracy"])
+        else:
+            assert a["clean_accuracy"] is None and a["certified_accuracy_vs_radius"] is None
+    table = format_table(s)
+    assert "tz" in table and "ry" in table and "frames:" in table
+
+
+def test_radius_grid_ends_at_the_requested_radius():
+    g = radius_grid(0.01)
+    assert g[0] == 0.0 and g[-1] == pytest.approx(0.01) and len(g) == 21 and g == sorted(g)
+
+
+def test_write_report_files(tmp_path):
+    recs = random_records(random.Random(3), 6, {"tz": 0.01})
+    s = summarize(recs, axes=["tz"], units={"tz": "m"}, requested={"tz": 0.01}, frames_seen=6)
+    files = write_report(tmp_path / "rep", recs, s, ["tz"])
+    assert sorted(p.name for p in files) == ["certified_accuracy_vs_radius.png", "frames.csv", "frames.png", "summary.json"]
+    rows = list(csv.DictReader((tmp_path / "rep" / "frames.csv").open()))
+    assert len(rows) == 6 and [int(r["frame"]) for r in rows] == list(range(6))
+    assert [r["status"] for r in rows] == [r_.cert("tz").status for r_ in recs]
+    assert json.loads((tmp_path / "rep" / "summary.json").read_text())["axes"]["tz"]["frames"] == 6
+    for name in ("certified_accuracy_vs_radius.png", "frames.png"):
+        assert (tmp_path / "rep" / name).read_bytes()[:4] == b"\x89PNG"
+    # no ground truth, no frames: still a valid (empty) report
+    empty = summarize([], axes=["tz"], units={"tz": "m"}, requested={"tz": 0.01}, frames_seen=0)
+    write_report(tmp_path / "rep2", [], empty, ["tz"])
+    assert (tmp_path / "rep2" / "frames.png").exists()
+
+
+# ---- progress bar ------------------------------------------------------------------------------
+
+class FakeTTY(io.StringIO):
+    def isatty(self):
+        return True
+
+
+def test_progress_is_silent_without_a_terminal_or_when_disabled():
+    for stream, enabled in ((io.StringIO(), None), (FakeTTY(), False)):
+        bar = ProgressBar(10, stream=stream, enabled=enabled)
+        for _ in range(10):
+            bar.update(1, note="x")
+        bar.close()
+        assert stream.getvalue() == ""
+
+
+def test_progress_on_a_terminal_shows_count_and_eta():
+    t = [0.0]
+    stream = FakeTTY()
+    bar = ProgressBar(4, stream=stream, label="replay", min_interval=0.0, clock=lambda: t[0])
+    for _ in range(2):
+        t[0] += 5.0
+        bar.update(1, note="tz ok")
+    text = stream.getvalue()
+    assert "2/4" in text and "50%" in text and "0:10 < 0:10" in text and "tz ok" in text
+    bar.close()
+    assert stream.getvalue().endswith("\n")
+
+
+def test_eta_and_durations():
+    assert eta_seconds(2, 4, 10.0) == pytest.approx(10.0)
+    assert math.isnan(eta_seconds(0, 4, 10.0)) and math.isnan(eta_seconds(3, None, 1.0))
+    assert format_duration(3725) == "1:02:05" and format_duration(65) == "1:05" and format_duration(float("nan")) == "?"
+    line = format_bar(3, 10, 6.0, label="x", note="a" * 500, width=60)
+    assert len(line) < 60 and "3/10" in line
+    assert "7 frames" in format_bar(7, None, 2.0)
