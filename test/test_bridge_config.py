@@ -146,7 +146,6 @@ def test_spec_table_per_node():
 
 
 def test_certify_config_mapping():
-    pytest.importorskip("pws_ros.core.certify", reason="core.certify not written yet")
     cfg = C.config_from_params({"sigma": 0.25, "n0": 10, "n": 20, "delta": 0.0, "cms_sigma": 0.05})
     cc = cfg.certify_config()
     assert (cc.sigma, cc.n0, cc.n, cc.delta, cc.cms_sigma, cc.coverage) == (0.25, 10, 20, None, 0.05, "pairwise")

@@ -26,7 +26,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from ..core.certify import CertifyConfig, certify, certify_rendered
+from ..core.certify import CertifyConfig, certify, certify_rendered, cohen_radii, paper_reach
 from ..core.bounds import render_plan
 from ..core.cloud import Cloud
 from ..core.errors import PwsError, require
@@ -35,7 +35,7 @@ from ..core.motion import PAPER_RADIUS, UNITS
 from ..core.partition import DEFAULT_DELTA_PX, Plan, consistent_runs, make_grid, plan_partitions
 from ..core.render import Renderer, resolve_device
 from ..core.result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_NOT_CERTIFIED
-from ..core.smoothing import SmoothedClassifier, cohen_radius
+from ..core.smoothing import SmoothedClassifier
 from .settings import BenchSettings, scene_ids
 
 PLAN_CAP = 10_000_000          # larger plans are reported as "> PLAN_CAP" (the grid alone would not fit)
@@ -190,18 +190,9 @@ def paper_rule(p_a_lower, pair_bound_sq, alphas, sigma: float) -> tuple[str, boo
     alphas = np.asarray(alphas, dtype=np.float64)
     p = np.asarray(p_a_lower, dtype=np.float64).reshape(-1)
     require(len(p) == len(alphas), "paper rule needs one p_A bound per partition")
-    R = np.asarray(cohen_radius(p, sigma), dtype=np.float64).reshape(-1)
-    R = np.where(np.isfinite(R), R, np.finfo(np.float64).max)
-    B = np.asarray(pair_bound_sq, dtype=np.float64)
+    R = cohen_radii(p, sigma)
     centre = int(np.searchsorted(alphas, 0.0))
-    Mseg = np.sqrt(B / 2)
-    j = 0
-    while j < centre:
-        jj = j + 1
-        if Mseg[centre - jj : centre + jj].max() < R[centre - jj : centre + jj + 1].min():
-            j = jj
-        else:
-            break
+    j = paper_reach(pair_bound_sq, R, centre)
     if not R[centre] > 0:
         return STATUS_ABSTAIN, False, 0.0
     certified = j == centre

@@ -89,6 +89,22 @@ def symmetric_reach(covered: np.ndarray, centre: int) -> int:
     return j
 
 
+def cohen_radii(p_a_lower, sigma: float) -> np.ndarray:
+    """Cohen radii ``R_i`` of the p_A lower bounds (0 where p_A <= 1/2; finite where p_A = 1)."""
+    R = np.asarray(cohen_radius(np.asarray(p_a_lower, dtype=np.float64), sigma), dtype=np.float64).reshape(-1)
+    return np.where(np.isfinite(R), R, np.finfo(np.float64).max)
+
+
+def paper_reach(pair_bound_sq: np.ndarray, R: np.ndarray, centre: int) -> int:
+    """Largest ``j`` with ``max sqrt(B / 2) < min R`` over segments ``centre-j .. centre+j-1`` and partitions
+    ``centre-j .. centre+j`` (the paper's rule on each symmetric sub-interval)."""
+    Mseg = np.sqrt(np.asarray(pair_bound_sq, dtype=np.float64) / 2)
+    j = 0
+    while j < centre and Mseg[centre - j - 1 : centre + j + 1].max() < R[centre - j - 1 : centre + j + 2].min():
+        j += 1
+    return j
+
+
 def _label_name(model: LoadedModel, label: int) -> str:
     try:
         return model.class_names[label]
@@ -227,21 +243,13 @@ def _certify_stream(renderer, plan: Plan, values: SegmentValues, model: LoadedMo
     t1 = time.perf_counter()
     n = int(config.n)
     p_lower = np.asarray(clopper_pearson_lower(k_est, n, a_level), dtype=np.float64).reshape(-1)
-    R = np.asarray(cohen_radius(p_lower, config.sigma), dtype=np.float64).reshape(-1)
-    R = np.where(np.isfinite(R), R, np.finfo(np.float64).max)
+    R = cohen_radii(p_lower, config.sigma)
     bounds: dict[str, Any] = {"max_pair_bound_sq": float(B.max()) if len(B) else 0.0,
                               "M": float(np.sqrt(B.max() / 2)) if len(B) else 0.0,
                               "R_min": float(R.min()), "R_centre": float(R[est_pos[centre]]) if centre in est_pos else float("nan"),
                               "lemma1_holds": plan.details.get("lemma1_holds")}
     if config.coverage == "paper":
-        Mseg = np.sqrt(B / 2)
-        j = 0
-        while j < centre:
-            jj = j + 1
-            if Mseg[centre - jj : centre + jj].max() < R[centre - jj : centre + jj + 1].min():
-                j = jj
-            else:
-                break
+        j = paper_reach(B, R, centre)
         covered_count = 2 * j
     elif config.coverage == "pairwise":
         covered = B < R[:-1] ** 2 + R[1:] ** 2
