@@ -230,8 +230,8 @@ def discover_inputs(bag: BagReader, config: PwsConfig, overrides: dict[str, str]
     images = bag.topics_of_type(T_IMAGE)
     infos = bag.topics_of_type(T_CAMERA_INFO)
     images = [t for t in images if not t.endswith("/" + OUT_PREVIEW)]
-    peek_topics = [t for t in clouds + images + infos]
-    first = bag.first_messages(peek_topics) if peek_topics else {}
+    peek_topics = [t for t in clouds + images + infos if bag.topics[t].count != 0]
+    first = bag.first_messages(peek_topics, max_scan=20_000) if peek_topics else {}
     decoded: dict[str, Any] = {}
     for t, msgs in first.items():
         if msgs:
@@ -570,7 +570,7 @@ class Replay:
         if not (inputs.depth and inputs.color and inputs.info):
             return
         want = [t for t in (inputs.depth, inputs.color, inputs.info, inputs.depth_info) if t]
-        first = bag.first_messages(want)
+        first = bag.first_messages(want, max_scan=20_000)
         try:
             msgs = {t: bag.deserialize(v[0]) for t, v in first.items() if v}
         except PwsError as exc:

@@ -17,7 +17,6 @@ import math
 
 import numpy as np
 import pytest
-import torch
 from scipy.stats import norm
 
 from conftest import LinearNet, MeanThresholdNet

@@ -586,3 +586,73 @@ def test_shipped_demo_bag_when_present(models, tmp_path, capsys):
     assert rc == 0, err
     s = json.loads(stdout)
     assert s["frames"]["processed"] == 2 and s["frames"]["with_truth"] == 2
+
+
+# ---- storage formats, split bags, config files, the pws entry point ------------------------------
+
+def _write_mcap(path: Path, items):
+    from mcap.writer import Writer
+
+    ts = msgbuild.rosbags_types().typestore
+    with path.open("wb") as fh:
+        w = Writer(fh)
+        w.start(profile="ros2", library="test")
+        sids, cids = {}, {}
+        for t, ty, lt, raw in items:
+            if ty not in sids:
+                sids[ty] = w.register_schema(name=ty, encoding="ros2msg", data=ts.generate_msgdef(ty, ros_version=2)[0].encode())
+            if t not in cids:
+                cids[t] = w.register_channel(topic=t, message_encoding="cdr", schema_id=sids[ty])
+            w.add_message(channel_id=cids[t], log_time=lt, data=raw, publish_time=lt)
+        w.finish()
+    return path
+
+
+def test_same_results_from_sqlite3_split_and_bare_recordings(sim_bag, sim_msgs, models, tmp_path, capsys):
+    base = tmp_path / "base"
+    assert run_cli([sim_bag, "--out", base, "--model", models["linear"], *TINY], capsys)[0] == 0
+    expect = [(st, without_timing(p)) for _lt, st, p in certifications(base)]
+    items = [(t, ty, lt, raw) for t, ty, lt, _d, raw in sim_msgs]
+    sqlite = write_bag(tmp_path / "sq", items, storage="sqlite3")
+    split = tmp_path / "split"
+    split.mkdir()
+    _write_mcap(split / "part_0.mcap", items[: len(items) // 2])
+    _write_mcap(split / "part_1.mcap", items[len(items) // 2:])
+    bare = next(sim_bag.glob("*.mcap"))
+    for k, src in enumerate((sqlite, next(sqlite.glob("*.db3")), split, bare)):
+        out = tmp_path / f"o{k}"
+        rc, _o, err = run_cli([src, "--out", out, "--model", models["linear"], *TINY], capsys)
+        assert rc == 0, err
+        assert [(st, without_timing(p)) for _lt, st, p in certifications(out)] == expect, src
+
+
+def test_config_file_and_the_pws_entry_point(sim_bag, models, tmp_path, capsys):
+    from pws_ros import cli
+
+    conf = tmp_path / "params.yaml"
+    conf.write_text("/**:\n  ros__parameters:\n    axes: [ry]\n    radius:\n      ry: 0.001\n    n0: 16\n    n: 24\n"
+                    f"    seed: 3\n    model_path: {models['linear']}\n")
+    rc = cli.main(["replay", str(sim_bag), "--config", str(conf), "--no-output", "--quiet", "--json", "--max-frames", "1"])
+    out, err = capsys.readouterr()
+    assert rc == 0, err
+    s = json.loads(out)
+    assert s["config"]["axes"] == ["ry"] and s["config"]["n"] == 24 and s["config"]["seed"] == 3
+    assert s["config"]["radius"] == {"ry": 0.001} and list(s["axes"]) == ["ry"]
+    # options override the file
+    rc = cli.main(["replay", str(sim_bag), "--config", str(conf), "--n", "20", "--axes", "tz", "--radius", "1mm", "--no-output",
+                   "--quiet", "--json", "--max-frames", "1"])
+    s = json.loads(capsys.readouterr().out)
+    assert rc == 0 and s["config"]["n"] == 20 and s["config"]["radius"] == {"tz": 0.001}
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("/**:\n  ros__parameters:\n    n0: -4\n")
+    rc = cli.main(["replay", str(sim_bag), "--config", str(bad), "--no-output"])
+    assert rc == 2 and "n0" in capsys.readouterr().err
+
+
+def test_max_partitions_caps_the_cost_per_frame(sim_bag, models, capsys):
+    rc, stdout, err = run_cli([sim_bag, "--no-output", "--model", models["linear"], "--axes", "tz,ry", "--radius", "tz=5cm,ry=0.05deg",
+                               "--n0", "16", "--n", "32", "--max-partitions", "3", "--quiet", "--json"], capsys)
+    assert rc == 0, err  # ry was certified, tz refused on every frame
+    s = json.loads(stdout)
+    assert s["axes"]["tz"]["errors"] == 3 and s["axes"]["ry"]["errors"] == 0
+    assert all("max_partitions=3" in reason for reason in s["error_reasons"])

@@ -7,6 +7,8 @@ holes per segment).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, assume, given, settings
@@ -282,3 +284,26 @@ def test_winner_misses_depth_order_crossing():
         assert any(np.array_equal(cloud.colors[c], shown) for c in cands)
         # ... but `winner` should be the shown point on both sides of the crossing
         np.testing.assert_array_equal(cloud.colors[st_.winner[j[p]]], shown)
+
+
+@pytest.mark.xfail(strict=True, reason="bug: sweep.pixel_states merges visit boundaries closer than tol (point 0 leaving "
+                   "pixel 12 and point 1 entering it at alpha = -0.07), but at alpha = -0.07 in float64 point 0 is at "
+                   "u = 11.999999999999998 and point 1 at u = 13.0, so the renderer shows a hole the bounds leave out: "
+                   "|x - x_i|^2 + |x - x_{i+1}|^2 = 12 > pair_bound_sq[i] = 6")
+def test_bound_at_merged_crossing_instant():
+    cam = CameraIntrinsics(width=40, height=30, fx=40.0, fy=40.0, cx=19.5, cy=14.5)
+    # the centres of pixels (15, 8) and (15, 9) at 0.8 m, as cloud_from_rgbd makes them
+    pts = np.array([[(c - cam.cx) * 0.8 / cam.fx, 0.0, 0.8] for c in (8, 9)])
+    cloud = Cloud(pts, np.ones((2, 3), np.float32))
+    a = -0.07
+    u = project(pts, cam, "tx", a)[0]
+    assert math.floor(u[0]) == 11 and math.floor(u[1]) == 13  # pixel 12 is empty at this alpha
+    alphas = make_grid(0.08, 0.08 / 11)
+    plan = Plan("coarse", "tx", 0.08, 0.08 / 11, len(alphas), alphas)
+    rp = render_plan(cloud, cam, plan)
+    f = rp.frames.numpy()
+    i = int(np.searchsorted(alphas, a, side="right") - 1)
+    assert alphas[i] < a < alphas[i + 1]
+    x = render(cloud, cam, "tx", [a])
+    lhs = sqdist(x, f[i : i + 1]) + sqdist(x, f[i + 1 : i + 2])
+    assert lhs[0] <= rp.pair_bound_sq[i]

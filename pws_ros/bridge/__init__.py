@@ -8,6 +8,7 @@ field names, so the same code converts a live message in a node and a recorded o
 - :mod:`.msgbuild` core objects -> messages (DiagnosticArray certification, PoseArray, PointCloud2,
   Image, MarkerArray, health) for a ``types`` namespace of message classes
 - :mod:`.sync`     stamp matching, the latest-only online policy, partition-set assembly
+- :mod:`.inputs`   the camera-input front end of cloud_listener/pipeline (and pws replay)
 - :mod:`.config`   the parameter table (one source of truth) and ``config/pws.yaml`` loading
 - :mod:`.scheme`   the wire scheme of the four-process mode (plans, frames, bounds on topics)
 - :mod:`.engine`   ``FrameCertifier``: the per-frame pipeline (plan, render, certify every axis)

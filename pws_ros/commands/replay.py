@@ -139,6 +139,9 @@ def register(subparsers) -> None:
     c.add_argument("--seed", type=int, default=None, help="random seed (same bag + seed = same certificates)")
     c.add_argument("--device", default=None, help="cpu or cuda:N (falls back to cpu with a warning)")
     c.add_argument("--batch-size", type=int, default=None, help="images per classifier call")
+    c.add_argument("--max-partitions", type=int, default=None,
+                   help="refuse plans needing more partitions than this (an ERROR status for that axis, at once); a quick cap "
+                        "on the cost per frame (default: config max_partitions, 20000)")
     c.add_argument("--model", default=None, help="TorchScript classifier (default: config model_path, bags/models/classifier_sigma0.50.pt)")
     c.add_argument("--classes", default=None, help="class-names file (default: beside the model)")
     c.add_argument("--denoiser", default=None, help="optional TorchScript denoiser")
@@ -181,7 +184,7 @@ def build_config(args: argparse.Namespace):
     simple = {"method": "method", "coverage": "coverage", "n0": "n0", "n": "n", "sigma": "sigma", "alpha": "alpha", "seed": "seed",
               "device": "device", "batch_size": "batch_size", "model": "model_path", "classes": "classes_path",
               "denoiser": "denoiser_path", "dense_cloud": "dense_cloud_path", "sync_tolerance": "sync_tolerance_s",
-              "preview_every": "preview_every"}
+              "preview_every": "preview_every", "max_partitions": "max_partitions"}
     for attr, name in simple.items():
         v = getattr(args, attr, None)
         if v is not None:

@@ -16,7 +16,7 @@ import json
 import math
 import time
 import warnings
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -25,7 +25,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from ..core.errors import PwsError, require
+from ..core.errors import require
 from ..core.model import META_FILE, META_FORMAT, save_model
 from .dataset import default_cache_dir, heldout_set, training_set
 from .world import CLASS_NAMES, NUM_CLASSES
@@ -196,11 +196,13 @@ def train_denoiser(images: np.ndarray, sigma: float, *, epochs: int = 3, batch_s
 def evaluate(model, images: np.ndarray, labels: np.ndarray, sigma: float, *, num_samples: int = 100, batch_size: int = 500,
              denoiser=None, seed: int = 0) -> dict:
     """Clean accuracy and smoothed accuracy (majority vote of ``num_samples`` noisy copies,
-    optionally denoised first; ties go to the lower class index) on ``images``."""
+    optionally denoised first; ties go to the lower class index) on ``images``, and the mean and
+    minimum fraction of noisy copies voting for the true class (what p_A, hence a certificate,
+    rests on)."""
     gen = torch.Generator().manual_seed(seed)
     X = _to_tensor(images)
     Y = np.asarray(labels, dtype=np.int64)
-    clean_pred, smooth_pred = [], []
+    clean_pred, smooth_pred, true_vote = [], [], []
     for i in range(len(X)):
         x = X[i : i + 1].float() / 255.0
         clean_pred.append(int(model(denoiser(x) if denoiser is not None else x).argmax(1)))
@@ -215,9 +217,11 @@ def evaluate(model, images: np.ndarray, labels: np.ndarray, sigma: float, *, num
             counts += torch.bincount(pred, minlength=len(counts))[: len(counts)]
             left -= b
         smooth_pred.append(int(counts.argmax()))
+        true_vote.append(float(counts[int(Y[i])]) / num_samples)
     clean = np.asarray(clean_pred)
     smooth = np.asarray(smooth_pred)
     return {"clean_accuracy": float((clean == Y).mean()), "smoothed_accuracy": float((smooth == Y).mean()),
+            "mean_true_vote": float(np.mean(true_vote)), "min_true_vote": float(np.min(true_vote)),
             "sigma": float(sigma), "num_samples": int(num_samples), "num_images": int(len(Y))}
 
 
