@@ -289,10 +289,6 @@ def test_certify_bad_input(model, scenes, tmp_path):
         certify(cloud, CAM, model, "tx", 0.06, "pws_of", cfg, plan=plan)  # plan for another radius
 
 
-@pytest.mark.xfail(strict=True, reason="bug: at alpha = -0.07 exactly, the col-8 square points sit at u = 11.999999999999998 "
-                   "and the col-9 ones at u = 13.0, leaving pixel 12 empty for an instant the sweep merged away "
-                   "(sweep.pixel_states tol snapping); the rendered frame is then outside every Cohen ball the "
-                   "certificate relies on (see test_sweep_bounds.test_bound_at_merged_crossing_instant)")
 def test_coverage_at_an_exact_crossing_instant(model, scenes):
     cloud = scenes["one_frame"]
     radius = 0.08

@@ -54,8 +54,6 @@ def test_grid_known_values():
     assert len(make_grid(0.01, 1e-4)) == 201
 
 
-@pytest.mark.xfail(strict=True, reason="bug: partition.make_grid computes radius*k/m, so the ends can miss ±b by an ulp "
-                   "(make_grid(0.7, 0.7/3)[-1] == 0.6999999999999998 < 0.7: the grid stops short of +b)")
 @pytest.mark.parametrize("radius", [0.7, 0.1, 0.2])
 def test_grid_ends_exactly_at_radius(radius):
     a = make_grid(radius, radius / 3)
@@ -168,9 +166,6 @@ def test_pws_delta_is_the_shortest_consistent_interval(kind, seed, axis):
     assert plan.alphas[0] == pytest.approx(-radius, abs=1e-15) and plan.alphas[-1] == pytest.approx(radius, abs=1e-15)
 
 
-@pytest.mark.xfail(strict=True, reason="bug: PwS misses consistent intervals created when two points' depth order "
-                   "crosses inside one pixel under rx/ry (sweep.pixel_states has no breakpoint there): on a noisy "
-                   "one-frame cloud delta_alpha is 0.065-0.075 where a dense sweep finds a run of < 0.0004")
 @pytest.mark.parametrize("kind,seed,axis", [("one_frame", 1, "rx"), ("one_frame", 2, "ry")])
 def test_pws_delta_noisy_one_frame_rotation(kind, seed, axis):
     cloud = scene(kind, seed)
@@ -180,9 +175,6 @@ def test_pws_delta_noisy_one_frame_rotation(kind, seed, axis):
     assert plan.delta_alpha <= min(upper, radius) + 1e-12
 
 
-@pytest.mark.xfail(strict=True, reason="bug: PwS misses consistent intervals created when two points' depth order "
-                   "crosses inside one pixel under rx/ry (sweep.pixel_states has no breakpoint there), so delta_alpha "
-                   "(0.057) exceeds the true shortest interval (0.006) and details['lemma1_holds'] is wrongly True")
 def test_pws_delta_with_depth_order_crossing():
     cam = CameraIntrinsics(width=14, height=10, fx=15.0, fy=14.0, cx=6.5, cy=4.5)
     pts = np.array([[-0.069, -0.669, 2.735], [-0.148, -0.508, 2.752]])
@@ -251,9 +243,6 @@ def test_pws_of_plan(axis):
     assert c_delta(cloud.points, CAM, axis, radius, 0.1) >= plan.details["c_delta"]
 
 
-@pytest.mark.xfail(strict=True, reason="bug: plan_partitions(method='pws_l') keeps visits with extent > 0 px, so a "
-                   "point that crosses a pixel corner exactly (a 1-ulp visit, extent ~1e-15 px) gives "
-                   "delta_alpha ~3e-17 and a PwsError asking for ~1.9e16 partitions")
 def test_pws_l_point_through_a_pixel_corner():
     cam = CameraIntrinsics(width=16, height=12, fx=16.0, fy=15.0, cx=7.5, cy=5.5)
     # the centre of pixel (2, 12) at 1 m: under tz its ray passes exactly through pixel corners
@@ -262,10 +251,6 @@ def test_pws_l_point_through_a_pixel_corner():
     assert plan.delta_alpha > 1e-6
 
 
-@pytest.mark.xfail(strict=True, reason="bug: pws_l/pws_of take L_P over the whole planning window [-4b, 4b]; for "
-                   "rx/ry with b >= ~0.35 rad that window passes the point's pole (depth 0 at ~pi/2), L_P blows up and "
-                   "delta_alpha ~1e-12 (PwsError asking for ~1e12 partitions), although every point stays > 0.87 m "
-                   "in front of the camera on [-b, b] and PwS plans 17 partitions")
 @pytest.mark.parametrize("method", ["pws_l", "pws_of"])
 def test_large_rotation_plans(method):
     cloud = Cloud(np.array([[0.0, 0.0, 1.0]]), np.ones((1, 3), np.float32))

@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from pws_ros.core.camera import CameraIntrinsics
 from pws_ros.core.cloud import Cloud, cloud_from_rgbd
 from pws_ros.core.errors import PwsError
-from pws_ros.core.motion import AXES, project, transform
+from pws_ros.core.motion import AXES, PIXEL_OVERLAP, project, transform
 from pws_ros.core.render import Renderer, render
 
 W, H = 40, 30
@@ -107,26 +107,33 @@ def test_behind_and_outside_points_are_dropped():
     cols = np.ones((len(pts), 3), dtype=np.float32)
     frames = render(Cloud(pts, cols), CAM, "tx", [0.0, 0.01], background=0.5)
     assert np.all(frames == np.float32(0.5))
-    # tz moving past the point puts it behind the camera
+    # tz moving past the point puts it behind the camera (a point on the optical axis sits on the corner
+    # of four pixels here, u = 20, v = 15, and is drawn in all four: motion.PIXEL_OVERLAP)
     one = Cloud(np.array([[0.0, 0.0, 1.0]]), np.ones((1, 3), np.float32))
     f = render(one, CAM, "tz", [0.0, 0.999, 1.0, 1.5], background=0.0)
-    assert f[0].sum() == 3 and f[1].sum() == 3 and f[2].sum() == 0 and f[3].sum() == 0
+    assert f[0].sum() == 12 and f[1].sum() == 12 and f[2].sum() == 0 and f[3].sum() == 0
+    assert f[0, 14:16, 19:21].sum() == 12
 
 
-def test_pixel_edges_are_half_open():
-    """Pixel (r, c) covers u in [c, c+1): a point exactly on the right edge of the image is dropped,
-    one exactly on the left edge is kept."""
+def test_pixel_footprints_overlap_by_pixel_overlap():
+    """Pixel (r, c) covers u in [c - e, c + 1 + e) with e = PIXEL_OVERLAP: a point exactly on an edge is
+    drawn on both sides of it (on the image border: inside only), one 2e beyond the border is dropped."""
+    e = PIXEL_OVERLAP
     Z = 1.0
-    # u = fx X / Z + cx + 1/2 = 0  -> X = -(cx + 1/2) Z / fx ; u = W -> X = (W - cx - 1/2) Z / fx
-    x_left = -(CAM.cx + 0.5) * Z / CAM.fx
-    x_right = (W - CAM.cx - 0.5) * Z / CAM.fx
-    pts = np.array([[x_left, 0.0, Z], [x_right, 0.0, Z]])
-    u, _, _ = project(pts, CAM, "tx", 0.0)
-    assume_exact = u[0] == 0.0 and u[1] == W
-    if not assume_exact:
-        pytest.skip("edge coordinates are not exactly representable for this camera")
-    f = render(Cloud(pts, np.ones((2, 3), np.float32)), CAM, "tx", [0.0])[0]
-    assert f[:, 0].sum() == 3 and f[:, W - 1].sum() == 0
+    v_row = 10.5  # mid-row: one row only
+
+    def at(u):  # the point whose pixel-edge coordinates are (u, v_row) at alpha = 0
+        return [(u - CAM.cx - 0.5) * Z / CAM.fx, (v_row - CAM.cy - 0.5) * Z / CAM.fy, Z]
+
+    for u, cols in ((0.0, {0}), (float(W), {W - 1}), (-2 * e, set()), (W + 2 * e, set()), (5.0, {4, 5}),
+                    (5.0 + 2 * e, {5}), (5.0 - 2 * e, {4}), (12.5, {12})):
+        pts = np.array([at(u)])
+        uu = project(pts, CAM, "tx", 0.0)[0][0]
+        assert abs(uu - u) < 1e-12
+        f = render(Cloud(pts, np.ones((1, 3), np.float32)), CAM, "tx", [0.0])[0]
+        shown = set(np.nonzero(f[..., 0].sum(axis=0))[0].tolist())
+        assert shown == cols, (u, shown)
+        assert set(np.nonzero(f[..., 0].sum(axis=1))[0].tolist()) <= {10}
 
 
 @pytest.mark.parametrize("background", [0.0, 1.0, 0.3])

@@ -18,7 +18,7 @@ from pws_ros.core.bounds import SAFETY, render_plan, segment_values
 from pws_ros.core.camera import CameraIntrinsics
 from pws_ros.core.cloud import Cloud, cloud_from_rgbd
 from pws_ros.core.errors import PwsError
-from pws_ros.core.motion import AXES, project
+from pws_ros.core.motion import AXES, pixel_span, project
 from pws_ros.core.partition import Plan, make_grid, plan_partitions
 from pws_ros.core.render import render
 from pws_ros.core.sweep import compute_visits, pixel_states
@@ -73,6 +73,25 @@ def sample_alphas(rng, alphas, k=24):
     return np.concatenate([a, rng.uniform(alphas[0], alphas[-1], k)])
 
 
+def boundary_alphas(rng, cloud, axis, alphas, k=16):
+    """The adversarial instants: computed visit boundaries and their float neighbours (where a hand-over
+    of two equal-depth points, or a rounding difference between the sweep and the renderer, bites)."""
+    vis = compute_visits(cloud.points, CAM, axis, float(alphas[0]), float(alphas[-1]))
+    t = np.concatenate([vis.t0, vis.t1])
+    t = t[(t > alphas[0]) & (t < alphas[-1])]
+    if len(t) == 0:
+        return np.zeros(0)
+    t = rng.choice(t, min(k, len(t)), replace=False)
+    out = [t]
+    for steps in (1, 2):
+        up, down = t.copy(), t.copy()
+        for _ in range(steps):
+            up, down = np.nextafter(up, np.inf), np.nextafter(down, -np.inf)
+        out += [up, down]
+    a = np.concatenate(out)
+    return a[(a >= alphas[0]) & (a <= alphas[-1])]
+
+
 def sqdist(a, b):
     return ((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2).reshape(len(a), -1).sum(axis=1)
 
@@ -93,7 +112,7 @@ def test_segment_bounds_are_sound(seed, kind, axis, method, background):
     # the plan frames are the renderer's frames
     np.testing.assert_array_equal(frames, render(cloud, CAM, axis, alphas, background=background))
 
-    a = sample_alphas(rng, alphas)
+    a = np.concatenate([sample_alphas(rng, alphas), boundary_alphas(rng, cloud, axis, alphas)])
     x = render(cloud, CAM, axis, a, background=background)
     seg = np.clip(np.searchsorted(alphas, a, side="right") - 1, 0, len(alphas) - 2)
     lhs = sqdist(x, frames[seg]) + sqdist(x, frames[seg + 1])
@@ -186,12 +205,8 @@ def test_pixel_states_winner_is_the_rendered_value(seed, kind, axis):
         ok = margin > 1e-9 * b
         winner = st_.winner[j]
         expect = colors[np.where(winner < 0, len(cloud.colors), winner)]
-        check = ok.copy()
-        if axis in ("rx", "ry"):
-            # two points' depth order can flip inside one elementary interval under rx/ry (the
-            # winner is taken at the midpoint): see test_winner_misses_depth_order_crossing
-            check &= st_.num_candidates[j] == 1
-        np.testing.assert_array_equal(fr[check], expect[check])
+        # the winner is what the renderer shows (depth-order crossings under rx/ry are breakpoints)
+        np.testing.assert_array_equal(fr[ok], expect[ok])
         # the shown value is always one of the interval's candidates (what the bounds rely on)
         for p in np.nonzero(ok)[0]:
             cands = st_.cand_point[st_.cand_ptr[j[p]] : st_.cand_ptr[j[p] + 1]]
@@ -212,27 +227,32 @@ def test_compute_visits_matches_dense_sampling(seed, kind, axis):
     K = 301
     grid = np.linspace(-b, b, K)
     u, v, z = project(pts[:, None, :], CAM, axis, grid[None, :])  # (N, K)
-    inside = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
-    col = np.floor(np.where(inside, u, 0)).astype(np.int64)
-    row = np.floor(np.where(inside, v, 0)).astype(np.int64)
-    covered = np.zeros_like(inside)
+    # the footprint rule of the renderer (motion.pixel_span): up to 2 x 2 pixels per sample
+    c_lo, c_hi = pixel_span(np.where(z > 0, u, -10.0))
+    r_lo, r_hi = pixel_span(np.where(z > 0, v, -10.0))
     tol = 1e-9 * b
+    foot = [(r, c) for r in (r_lo, r_hi) for c in (c_lo, c_hi)]
+    covered = [np.zeros(u.shape, bool) for _ in foot]
     for p, r, c, t0, t1 in zip(vis.point, vis.row, vis.col, vis.t0, vis.t1):
         within = (grid >= t0 - tol) & (grid <= t1 + tol)
         strict = (grid > t0 + tol) & (grid < t1 - tol)
-        # every sample strictly inside a visit is in that pixel, in front of the camera
-        assert np.all(inside[p, strict]), f"point {p} leaves the image inside its visit [{t0}, {t1}]"
-        assert np.all((row[p, strict] == r) & (col[p, strict] == c)), f"point {p} not in ({r},{c}) during [{t0},{t1}]"
-        covered[p] |= within & (row[p] == r) & (col[p] == c)
-    # every in-image sample lies in some visit of its point (to that pixel)
-    missing = inside & ~covered
-    assert not missing.any(), f"{missing.sum()} in-image samples not in any visit, e.g. point {np.argwhere(missing)[0]}"
+        # every sample strictly inside a visit has that pixel in its footprint, in front of the camera
+        inside_fp = (z[p] > 0) & (r_lo[p] <= r) & (r <= r_hi[p]) & (c_lo[p] <= c) & (c <= c_hi[p])
+        assert np.all(inside_fp[strict]), f"point {p} not in ({r},{c}) during [{t0},{t1}]"
+        for (rr, cc), cov in zip(foot, covered):
+            cov[p] |= within & (rr[p] == r) & (cc[p] == c)
+    # every in-image footprint pixel of every sample lies in some visit of its point to that pixel
+    for (rr, cc), cov in zip(foot, covered):
+        inside = (z > 0) & (cc >= 0) & (cc < W) & (rr >= 0) & (rr < H)
+        missing = inside & ~cov
+        assert not missing.any(), f"{missing.sum()} in-image samples not in any visit, e.g. {np.argwhere(missing)[0]}"
 
 
 def test_segment_values_reports_switching_pixels():
     """A single point sliding across three pixels in one segment: the middle pixel's value shows up
     only strictly inside the segment, so segment_values must list it (and the holes it leaves)."""
-    pt = Cloud(np.array([[0.02, 0.0, 1.0]]), np.array([[1.0, 0.5, 0.25]], np.float32))  # u(0) = 7.3
+    # u(0) = 7.3, v = 5.21 (off a row edge, so the point is drawn in one row)
+    pt = Cloud(np.array([[0.02, 0.05, 1.0]]), np.array([[1.0, 0.5, 0.25]], np.float32))
     # tx by a moves u by -fx a / Z = -15 a pixels: a = -0.1 .. 0.1 crosses three pixels
     alphas = np.array([-0.1, 0.0, 0.1])
     vals = segment_values(pt, CAM, "tx", alphas, background=0.0)
@@ -263,10 +283,7 @@ def test_segment_values_reports_switching_pixels():
 CROSSING_POINTS = np.array([[-0.069, -0.669, 2.735], [-0.148, -0.508, 2.752]])
 
 
-@pytest.mark.xfail(strict=True, reason="bug: sweep.pixel_states takes the winner at the interval midpoint and has no "
-                   "breakpoint where two candidates' depths cross (rx/ry), so `winner` is not what the renderer shows "
-                   "on the whole elementary interval")
-def test_winner_misses_depth_order_crossing():
+def test_winner_follows_depth_order_crossing():
     from scipy.optimize import brentq
 
     pts = CROSSING_POINTS
@@ -286,10 +303,6 @@ def test_winner_misses_depth_order_crossing():
         np.testing.assert_array_equal(cloud.colors[st_.winner[j[p]]], shown)
 
 
-@pytest.mark.xfail(strict=True, reason="bug: sweep.pixel_states merges visit boundaries closer than tol (point 0 leaving "
-                   "pixel 12 and point 1 entering it at alpha = -0.07), but at alpha = -0.07 in float64 point 0 is at "
-                   "u = 11.999999999999998 and point 1 at u = 13.0, so the renderer shows a hole the bounds leave out: "
-                   "|x - x_i|^2 + |x - x_{i+1}|^2 = 12 > pair_bound_sq[i] = 6")
 def test_bound_at_merged_crossing_instant():
     cam = CameraIntrinsics(width=40, height=30, fx=40.0, fy=40.0, cx=19.5, cy=14.5)
     # the centres of pixels (15, 8) and (15, 9) at 0.8 m, as cloud_from_rgbd makes them

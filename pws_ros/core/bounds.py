@@ -111,17 +111,22 @@ def segment_values(cloud: Cloud, intr: CameraIntrinsics, axis: str, alphas: np.n
     """The extra values each pixel can take strictly inside each segment (see module doc)."""
     alphas = np.asarray(alphas, dtype=np.float64)
     pts = cloud.points
-    st = pixel_states(pts, intr, axis, float(alphas[0]), float(alphas[-1]))
+    lo, hi = float(alphas[0]), float(alphas[-1])
+    st = pixel_states(pts, intr, axis, lo, hi)
     nseg = len(alphas) - 1
-    tol = 1e-12 * max(abs(alphas[0]), abs(alphas[-1]), 1e-9)
-    s, e = st.start, st.end
-    k_first = np.clip(np.searchsorted(alphas, s + tol, side="right") - 1, 0, nseg - 1)
-    k_last = np.clip(np.searchsorted(alphas, e - tol, side="left") - 1, 0, nseg - 1)
+    # An interval counts for every segment it comes within tol of (a boundary near a grid point may
+    # fall on either side of it in the renderer); intervals starting at lo / ending at hi are exact there.
+    tol = st.tol
+    s = np.where(st.start <= lo, -np.inf, st.start)
+    e = np.where(st.end >= hi, np.inf, st.end)
+    k_first = np.clip(np.searchsorted(alphas, s - tol, side="left") - 1, 0, nseg - 1)
+    k_last = np.clip(np.searchsorted(alphas, e + tol, side="right") - 1, 0, nseg - 1)
     ncand = st.num_candidates
     multi = ncand > 1
-    # singleton intervals: only the (at most two) segments they cover partially
+
+    # singleton intervals: only the (at most two) segments they do not cover with margin tol
     def partial(k):
-        return ~((s <= alphas[k] + tol) & (e >= alphas[k + 1] - tol))
+        return ~((s <= alphas[k] - tol) & (e >= alphas[k + 1] + tol))
 
     segs, ints = [], []
     for k in (k_first, k_last):

@@ -14,7 +14,8 @@ starts at ``-b``, ends at ``+b`` and contains ``0`` (``num_partitions = 2 ceil(b
   the derivation, ``delta`` is an input in pixels, not a quantile of the unknown complete cloud).
 
 Consistent intervals are computed on ``[-4b, 4b]``; a run reaching either end of that window is longer
-than ``3b`` and never limits ``delta_alpha <= b``. The plan only decides how many frames are rendered:
+than ``3b`` and never limits ``delta_alpha <= b`` (the window is narrower where ``4b`` would bring a point
+to depth 0, see :func:`planning_window`). The plan only decides how many frames are rendered:
 soundness never rests on it, because certification uses the per-segment bounds of :mod:`.bounds`,
 which hold whether or not Lemma 1 does (``details['lemma1_holds']`` reports which).
 """
@@ -37,6 +38,10 @@ from .sweep import Visits, compute_visits, pixel_states
 PLAN_METHODS = ("pws", "pws_l", "pws_of")
 DEFAULT_DELTA_PX = 0.05
 DEFAULT_MAX_PARTITIONS = 20000
+# PwS-L leaves out visits spanning at most this many pixels: a point grazing a pixel corner (or sitting
+# in the 1e-6 px overlap of two footprints) would otherwise ask for ~1e6x more frames for a change the
+# rendered bounds account for anyway.
+MIN_VISIT_EXTENT_PX = 1e-4
 
 
 @dataclass
@@ -108,7 +113,7 @@ def make_grid(radius: float, delta_alpha: float, max_partitions: int = DEFAULT_M
         raise PwsError(f"the plan needs {n} partitions (delta_alpha={delta_alpha:.3g}) for radius {radius:g}, "
                        f"more than max_partitions={max_partitions}; raise the cap or reduce the radius")
     alphas = radius * np.arange(-m, m + 1, dtype=np.float64) / m
-    alphas[m] = 0.0
+    alphas[0], alphas[m], alphas[-1] = -radius, 0.0, radius  # exact ends (radius * m / m can miss by an ulp)
     return alphas
 
 
@@ -199,6 +204,28 @@ def c_delta(points: np.ndarray, intr: CameraIntrinsics, axis: str, radius: float
     return sq + best
 
 
+def planning_window(points: np.ndarray, intr: CameraIntrinsics, axis: str, radius: float) -> float:
+    """The planning window ``[-w b, w b]`` as a multiple ``w`` of the radius: 4, or less where a wider
+    window would take a point to depth 0 (tz: any point, PwsError if ``b`` reaches one; rx, ry: a point
+    in view at alpha = 0), where projections and L_P blow up. The window then stops half-way between
+    ``b`` and the first such motion (at ``b`` if ``b`` already reaches it)."""
+    X, Y, Z = points[:, 0], points[:, 1], points[:, 2]
+    if axis == "tz":
+        limit = float(Z.min())
+        require(limit > radius, f"tz radius {radius:g} m reaches the nearest point of the cloud ({limit:.3g} m)")
+    elif axis in ("rx", "ry"):
+        u, v, d = project(points, intr, axis, 0.0)
+        seen = (d > 0) & (u >= 0) & (u < intr.width) & (v >= 0) & (v < intr.height)
+        if not seen.any():
+            return 4.0
+        # depth = Z cos t + B sin t (B = -Y for rx, X for ry) vanishes first at atan2(B, Z) -+ pi/2
+        phi = np.arctan2((-Y if axis == "rx" else X)[seen], Z[seen])
+        limit = float(np.min(np.minimum(phi + 0.5 * math.pi, 0.5 * math.pi - phi)))
+    else:
+        return 4.0
+    return max(1.0 + 1e-9, min(4.0, (radius + 0.5 * (limit - radius)) / radius))
+
+
 def plan_partitions(cloud: Cloud, intr: CameraIntrinsics, axis: str, radius: float, method: str = "pws_of",
                     delta: float | None = None, max_partitions: int = DEFAULT_MAX_PARTITIONS) -> Plan:
     """Plan the uniform partition of ``[-radius, radius]`` along ``axis`` with ``method``.
@@ -213,11 +240,7 @@ def plan_partitions(cloud: Cloud, intr: CameraIntrinsics, axis: str, radius: flo
     require(isinstance(max_partitions, int) and max_partitions >= 3, f"max_partitions must be an integer >= 3, got {max_partitions!r}")
     cloud.require_nonempty()
     pts = cloud.points[cloud.points[:, 2] > 0]
-    window = 4.0
-    if axis == "tz":  # keep the window in front of every point (depth Z - alpha > 0)
-        zmin = float(pts[:, 2].min())
-        require(zmin > radius, f"tz radius {radius:g} m reaches the nearest point of the cloud ({zmin:.3g} m)")
-        window = max(1.0 + 1e-9, min(4.0, (radius + 0.5 * (zmin - radius)) / radius))
+    window = planning_window(pts, intr, axis, radius)
     runs = consistent_runs(pts, intr, axis, radius, window)
     details: dict[str, Any] = {"num_runs": int(len(runs.pix)), "cloud_points": int(len(pts)), "window": window}
     lengths = runs.end - runs.start
@@ -236,7 +259,7 @@ def plan_partitions(cloud: Cloud, intr: CameraIntrinsics, axis: str, radius: flo
         uniq, inv = np.unique(vis.point, return_inverse=True) if len(vis.point) else (np.zeros(0, int), np.zeros(0, int))
         L = lipschitz_constant(pts[uniq], intr, axis, -window * radius, window * radius)[inv] if len(uniq) else np.zeros(0)
         if method == "pws_l":
-            ok = extent > 0  # a visit leaving through the edge it entered by can span ~0 px
+            ok = extent > MIN_VISIT_EXTENT_PX
             details["degenerate_visits"] = int((~ok).sum())
             ratio = extent[ok] / np.maximum(L[ok], 1e-300)
             delta_alpha = float(ratio.min()) if len(ratio) else math.inf

@@ -1,6 +1,7 @@
 """Batched z-buffer rasterisation of a coloured cloud under one-axis camera motion (torch).
 
-Pixel ``(row, col) = (floor v, floor u)`` in pixel-edge coordinates (see :mod:`.motion`); the nearest
+Pixel ``(row, col) = (floor v, floor u)`` in pixel-edge coordinates (see :mod:`.motion`; a point within
+``PIXEL_OVERLAP`` = 1e-6 px of a pixel edge is drawn on both sides of it); the nearest
 depth wins, ties go to the lower point index; points with ``z <= 0`` or outside the image are
 dropped; empty pixels get ``background``. Poses are processed in chunks so memory stays bounded
 (``max_elements`` point-projections at a time) whatever the number of poses.
@@ -15,7 +16,7 @@ import torch
 from .camera import CameraIntrinsics
 from .cloud import Cloud
 from .errors import PwsError, require
-from .motion import parse_axis, project
+from .motion import PIXEL_OVERLAP, parse_axis, pixel_span, project
 
 DEFAULT_MAX_ELEMENTS = 1 << 22
 
@@ -69,13 +70,31 @@ class Renderer:
         if n == 0:
             return idx.view(B, H, W), depth.view(B, H, W)
         u, v, z = project(self.points[None, :, :], self.intr, self.axis, alphas[:, None], xp=torch)
-        ok = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        e = PIXEL_OVERLAP  # (c + e >= 0) == (floor(c + e) >= 0) and (c - e < W) == (floor(c - e) < W)
+        ok = (z > 0) & (u + e >= 0) & (u - e < W) & (v + e >= 0) & (v - e < H)
         b_i, p_i = torch.nonzero(ok, as_tuple=True)
         if b_i.numel() == 0:
             return idx.view(B, H, W), depth.view(B, H, W)
-        col = torch.floor(u[b_i, p_i]).long().clamp_(0, W - 1)
-        row = torch.floor(v[b_i, p_i]).long().clamp_(0, H - 1)
-        key = (b_i * H + row) * W + col
+        cl, ch = (t.long() for t in pixel_span(u[b_i, p_i], xp=torch))
+        rl, rh = (t.long() for t in pixel_span(v[b_i, p_i], xp=torch))
+        # up to four pixels per point (overlapping footprints, see motion.PIXEL_OVERLAP); the extra
+        # ones concern only the few points within 1e-6 px of an edge
+        near = torch.nonzero((ch != cl) | (rh != rl), as_tuple=True)[0]
+        if near.numel():
+            e_b, e_p = b_i[near], p_i[near]
+            e_cl, e_ch, e_rl, e_rh = cl[near], ch[near], rl[near], rh[near]
+            dc, dr = e_ch != e_cl, e_rh != e_rl
+            parts = [(e_rl[dc], e_ch[dc], e_b[dc], e_p[dc]), (e_rh[dr], e_cl[dr], e_b[dr], e_p[dr])]
+            both = dc & dr
+            parts.append((e_rh[both], e_ch[both], e_b[both], e_p[both]))
+            rl = torch.cat([rl] + [q[0] for q in parts])
+            cl = torch.cat([cl] + [q[1] for q in parts])
+            b_i = torch.cat([b_i] + [q[2] for q in parts])
+            p_i = torch.cat([p_i] + [q[3] for q in parts])
+        valid = (cl >= 0) & (cl < W) & (rl >= 0) & (rl < H)
+        if not bool(valid.all()):
+            b_i, p_i, rl, cl = b_i[valid], p_i[valid], rl[valid], cl[valid]
+        key = (b_i * H + rl) * W + cl
         zz = z[b_i, p_i]
         zmin = torch.full((B * H * W,), float("inf"), dtype=torch.float64, device=self.device)
         zmin.scatter_reduce_(0, key, zz, reduce="amin", include_self=True)

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .camera import CameraIntrinsics
-from .motion import project, split_points
+from .motion import PIXEL_OVERLAP, pixel_span, project, split_points
 
 BISECT_ITERS = 64
 
@@ -67,7 +67,8 @@ def compute_visits(points: np.ndarray, intr: CameraIntrinsics, axis: str, lo: fl
     # prune pieces that are behind the camera or never touch the image
     umin, umax = np.minimum(ua, ub), np.maximum(ua, ub)
     vmin, vmax = np.minimum(va, vb), np.maximum(va, vb)
-    keep = (dm > 0) & (umax >= 0) & (umin < W) & (vmax >= 0) & (vmin < H)
+    e = PIXEL_OVERLAP
+    keep = (dm > 0) & (umax + e >= 0) & (umin - e < W) & (vmax + e >= 0) & (vmin - e < H)
     pidx, a, b, P = pidx[keep], a[keep], b[keep], P[keep]
     ua, ub, va, vb = ua[keep], ub[keep], va[keep], vb[keep]
     umin, umax, vmin, vmax = umin[keep], umax[keep], vmin[keep], vmax[keep]
@@ -82,11 +83,14 @@ def compute_visits(points: np.ndarray, intr: CameraIntrinsics, axis: str, lo: fl
         count = np.where(fmin > limit, 0, count)
         return k0.astype(np.int64), count
 
-    ku0, cu = crossings(umin, umax, W)
-    kv0, cv = crossings(vmin, vmax, H)
     times = [a, b]
     owners = [np.arange(n_pieces), np.arange(n_pieces)]
-    for k0, cnt, comp in ((ku0, cu, 0), (kv0, cv, 1)):
+    # the footprint edges: where c + e or c - e crosses an integer (c = u or v), found by bisection on
+    # exactly the float expressions the renderer floors (motion.pixel_span)
+    for comp, off in ((0, e), (0, -e), (1, e), (1, -e)):
+        fmin = (umin if comp == 0 else vmin) + off
+        fmax = (umax if comp == 0 else vmax) + off
+        k0, cnt = crossings(fmin, fmax, W if comp == 0 else H)
         total = int(cnt.sum())
         if total == 0:
             continue
@@ -100,7 +104,7 @@ def compute_visits(points: np.ndarray, intr: CameraIntrinsics, axis: str, lo: fl
         for _ in range(BISECT_ITERS):
             mid = 0.5 * (lo_t + hi_t)
             uu, vv, _ = _uvd(Pk, intr, axis, mid)
-            f = uu if comp == 0 else vv
+            f = (uu if comp == 0 else vv) + off
             below = f < k  # not yet reached k when increasing
             go_right = np.where(increasing, below, ~below)
             lo_t = np.where(go_right, mid, lo_t)
@@ -116,14 +120,25 @@ def compute_visits(points: np.ndarray, intr: CameraIntrinsics, axis: str, lo: fl
     nonzero = s1 > s0
     s0, s1, own = s0[nonzero], s1[nonzero], own[nonzero]
     uu, vv, dd = _uvd(P[own], intr, axis, 0.5 * (s0 + s1))
-    inside = (dd > 0) & (uu >= 0) & (uu < W) & (vv >= 0) & (vv < H)
-    s0, s1, own = s0[inside], s1[inside], own[inside]
-    col = np.floor(uu[inside]).astype(np.int64)
-    row = np.floor(vv[inside]).astype(np.int64)
+    c_lo, c_hi = pixel_span(uu)
+    r_lo, r_hi = pixel_span(vv)
+    # each sub-piece lies in one to four pixels (footprints overlap near the edges)
+    parts = []
+    for r, c, extra in ((r_lo, c_lo, None), (r_lo, c_hi, c_hi != c_lo), (r_hi, c_lo, r_hi != r_lo),
+                        (r_hi, c_hi, (c_hi != c_lo) & (r_hi != r_lo))):
+        ok = (dd > 0) & (c >= 0) & (c < W) & (r >= 0) & (r < H)
+        if extra is not None:
+            ok &= extra
+        parts.append((own[ok], r[ok], c[ok], s0[ok], s1[ok]))
+    own = np.concatenate([p[0] for p in parts])
+    row = np.concatenate([p[1] for p in parts]).astype(np.int64)
+    col = np.concatenate([p[2] for p in parts]).astype(np.int64)
+    s0 = np.concatenate([p[3] for p in parts])
+    s1 = np.concatenate([p[4] for p in parts])
     point = pidx[own]
-    # merge consecutive visits of one point to one pixel (split across pieces)
+    # merge consecutive visits of one point to one pixel (split across sub-pieces)
     if len(point):
-        order = np.lexsort((s0, point))
+        order = np.lexsort((s0, col, row, point))
         point, row, col, s0, s1 = point[order], row[order], col[order], s0[order], s1[order]
         cont = (point[1:] == point[:-1]) & (row[1:] == row[:-1]) & (col[1:] == col[:-1]) & (s0[1:] <= s1[:-1])
         start = np.concatenate([[True], ~cont])
@@ -135,6 +150,16 @@ def compute_visits(points: np.ndarray, intr: CameraIntrinsics, axis: str, lo: fl
     return Visits(point, row, col, s0, s1)
 
 
+TIME_TOL_REL = 1e-10
+TIME_TOL_ABS = 1e-12
+
+
+def default_tol(lo: float, hi: float) -> float:
+    """Time tolerance of a sweep over ``[lo, hi]``: how far a computed visit boundary may be from the
+    instant at which the float renderer actually switches (bisection, sin/cos rounding)."""
+    return max(TIME_TOL_REL * max(abs(lo), abs(hi)), TIME_TOL_ABS)
+
+
 @dataclass
 class PixelStates:
     """Per pixel, elementary intervals ``[start, end]`` of the motion range and the values a pixel can
@@ -144,6 +169,7 @@ class PixelStates:
     ``[lo, hi]`` for every pixel of the image). Candidates of interval ``j`` are
     ``cand_point[cand_ptr[j]:cand_ptr[j+1]]`` (point indices; ``-1`` = background/hole).
     ``winner[j]`` is the value the renderer shows inside the interval (nearest, lowest index) or -1.
+    ``tol`` is the time tolerance the candidates allow for (:func:`default_tol`).
     """
 
     lo: float
@@ -154,6 +180,7 @@ class PixelStates:
     winner: np.ndarray
     cand_ptr: np.ndarray
     cand_point: np.ndarray
+    tol: float = 0.0
 
     @property
     def num_candidates(self) -> np.ndarray:
@@ -164,103 +191,143 @@ def pixel_states(points: np.ndarray, intr: CameraIntrinsics, axis: str, lo: floa
                  visits: Visits | None = None, tol: float | None = None) -> PixelStates:
     """Elementary intervals and candidate values of every pixel over ``[lo, hi]``.
 
-    Visit boundaries of one pixel closer than ``tol`` (default ``1e-12 * max(|lo|, |hi|, 1e-9)``, the
-    float64 resolution of the motion value itself) are merged: a point leaving and its neighbour
-    entering at the same instant leaves no hole.
+    A visit ``[t0, t1]`` is taken as *possibly* present on ``[t0 - tol, t1 + tol]`` and *surely* present
+    on ``[t0 + tol, t1 - tol]`` (range ends excepted), and those four instants are the breakpoints, so a
+    boundary's float uncertainty sits in an interval of its own. Candidates of an interval: every
+    possibly present point that no surely present point beats (nearer at both ends of the interval),
+    plus the background unless some point is surely present. Under ``rx``/``ry`` the depth order of
+    two candidates can swap inside an interval: those instants are added as breakpoints too, so
+    ``winner`` (the renderer's choice) is constant on every interval.
     """
     points = np.asarray(points, dtype=np.float64)
     if visits is None:
         visits = compute_visits(points, intr, axis, lo, hi)
     if tol is None:
-        tol = 1e-12 * max(abs(lo), abs(hi), 1e-9)
+        tol = default_tol(lo, hi)
+    st = _states(points, intr, axis, lo, hi, visits, tol, np.zeros(0, np.int64), np.zeros(0))
+    if axis in ("rx", "ry"):
+        cpix, ct = _depth_order_crossings(points, axis, st)
+        if len(cpix):
+            st = _states(points, intr, axis, lo, hi, visits, tol, cpix, ct)
+    return st
+
+
+def _block_search(keys: np.ndarray, bs: np.ndarray, be: np.ndarray, target: np.ndarray, strict: bool) -> np.ndarray:
+    """Per query, the first index ``j`` in ``[bs, be)`` with ``keys[j] >= target`` (``> target`` if strict),
+    ``be`` if none; ``keys`` is sorted inside every block."""
+    lo_i, hi_i = bs.copy(), be.copy()
+    n = len(keys)
+    if n == 0 or len(bs) == 0:
+        return lo_i
+    steps = int(np.ceil(np.log2(max(2, int((be - bs).max(initial=1)) + 1)))) + 1
+    for _ in range(steps):
+        mid = (lo_i + hi_i) // 2
+        k = keys[np.minimum(mid, n - 1)]
+        go = (mid < hi_i) & ((k <= target) if strict else (k < target))
+        lo_i = np.where(go, mid + 1, lo_i)
+        hi_i = np.where(go, hi_i, mid)
+    return lo_i
+
+
+def _states(points, intr, axis, lo, hi, visits: Visits, tol: float, extra_pix, extra_t) -> PixelStates:
     H, W = intr.height, intr.width
     npix = H * W
     vp = visits.row * W + visits.col
-    # breakpoints per pixel: visit boundaries plus lo/hi for every pixel
-    bp_pix = np.concatenate([vp, vp, np.arange(npix), np.arange(npix)])
-    bp_t = np.concatenate([visits.t0, visits.t1, np.full(npix, lo), np.full(npix, hi)])
-    bp_t = np.clip(bp_t, lo, hi)
+    at_lo, at_hi = visits.t0 <= lo, visits.t1 >= hi
+    p0 = np.where(at_lo, lo, np.clip(visits.t0 - tol, lo, hi))
+    d0 = np.where(at_lo, lo, np.clip(visits.t0 + tol, lo, hi))
+    p1 = np.where(at_hi, hi, np.clip(visits.t1 + tol, lo, hi))
+    d1 = np.where(at_hi, hi, np.clip(visits.t1 - tol, lo, hi))
+    bp_pix = np.concatenate([vp, vp, vp, vp, np.arange(npix), np.arange(npix), extra_pix])
+    bp_t = np.concatenate([p0, d0, d1, p1, np.full(npix, lo), np.full(npix, hi), extra_t])
     order = np.lexsort((bp_t, bp_pix))
     bp_pix, bp_t = bp_pix[order], bp_t[order]
-    # snap: drop a breakpoint within tol of the previous kept one of the same pixel
-    newpix = np.concatenate([[True], bp_pix[1:] != bp_pix[:-1]])
-    gap = np.concatenate([[np.inf], np.diff(bp_t)])
-    keep = newpix | (gap > tol)
+    keep = np.concatenate([[True], (bp_pix[1:] != bp_pix[:-1]) | (bp_t[1:] != bp_t[:-1])])
     bp_pix, bp_t = bp_pix[keep], bp_t[keep]
     same = bp_pix[1:] == bp_pix[:-1]
     pix, start, end = bp_pix[:-1][same], bp_t[:-1][same], bp_t[1:][same]
-    # pixel block offsets for interval lookup
     n_int = len(pix)
     block_start = np.searchsorted(pix, np.arange(npix), side="left")
     block_end = np.searchsorted(pix, np.arange(npix), side="right")
-    # covering pairs (visit, interval): intervals of the visit's pixel within [t0 - tol, t1 + tol]
-    # intervals of one pixel are sorted; use per-visit searchsorted through a global key on (pix, start)
-    first = np.empty(len(visits), dtype=np.int64)
-    last = np.empty(len(visits), dtype=np.int64)
-    if len(visits):
-        # np.searchsorted per block via offset trick: start is monotone within a block
-        key_pix = pix.astype(np.float64)
-        # rank of times inside each block
-        bs = block_start[vp]
-        be = block_end[vp]
-        # vectorised binary search within [bs, be)
-        lo_i, hi_i = bs.copy(), be.copy()
-        target = visits.t0 - tol
-        for _ in range(int(np.ceil(np.log2(max(2, int((be - bs).max(initial=1)) + 1)))) + 1):
-            mid = (lo_i + hi_i) // 2
-            midc = np.minimum(mid, n_int - 1)
-            go = (mid < hi_i) & (start[midc] < target)
-            lo_i = np.where(go, mid + 1, lo_i)
-            hi_i = np.where(go, hi_i, mid)
-        first = lo_i
-        lo_i, hi_i = bs.copy(), be.copy()
-        target = visits.t1 + tol
-        for _ in range(int(np.ceil(np.log2(max(2, int((be - bs).max(initial=1)) + 1)))) + 1):
-            mid = (lo_i + hi_i) // 2
-            midc = np.minimum(mid, n_int - 1)
-            go = (mid < hi_i) & (end[midc] <= target)
-            lo_i = np.where(go, mid + 1, lo_i)
-            hi_i = np.where(go, hi_i, mid)
-        last = lo_i  # exclusive
-        del key_pix
+    # (visit, interval) pairs where the visit is possibly present: intervals from p0 to p1
+    bs, be = block_start[vp], block_end[vp]
+    first = _block_search(start, bs, be, p0, strict=False)
+    last = _block_search(end, bs, be, p1, strict=True)  # exclusive
     cnt = np.maximum(0, last - first)
     total = int(cnt.sum())
     own = np.repeat(np.arange(len(visits)), cnt)
     off = np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt)
     jint = np.repeat(first, cnt) + off
     vpt = visits.point[own]
-    # Candidates: Q is dropped only if some covering point R is strictly nearer than Q at both ends
-    # of the interval. Depth differences of two points are linear in alpha (translations), constant
-    # (rz) or harmonic (rx, ry: a sign change needs a zero, and two zeros are pi apart), so on an
-    # interval shorter than pi "nearer at both ends" means nearer throughout: the test is exact for a
-    # single dominating occluder and never drops a point that can win.
     s_j, e_j = start[jint], end[jint]
+    sure = (d0[own] <= s_j) & (e_j <= d1[own])
+    # Candidates: Q is dropped only if some surely present point R is strictly nearer than Q at both
+    # ends of the interval. Depth differences of two points are linear in alpha (translations),
+    # constant (rz) or harmonic (rx, ry: a sign change needs a zero, and two zeros are pi apart), so on
+    # an interval shorter than pi "nearer at both ends" means nearer throughout: the test never drops
+    # a point that can win.
     _, _, ds = project(points[vpt], intr, axis, s_j)
     _, _, de = project(points[vpt], intr, axis, e_j)
-    _, _, dmid = project(points[vpt], intr, axis, 0.5 * (s_j + e_j))
     is_cand = np.ones(total, dtype=bool)
-    for primary, secondary in ((ds, de), (de, ds)):
-        order = np.lexsort((secondary, primary, jint))
-        head = np.concatenate([[True], jint[order][1:] != jint[order][:-1]]) if total else np.zeros(0, bool)
-        wit = np.empty(n_int, dtype=np.int64)
-        wit[jint[order][head]] = order[head]
-        w = wit[jint]
-        dominated = (ds[w] < ds) & (de[w] < de)
-        is_cand &= ~dominated
-    # winner (renderer's choice at the midpoint): min depth, then min index
-    order = np.lexsort((vpt, dmid, jint))
-    first_of = np.concatenate([[True], jint[order][1:] != jint[order][:-1]]) if total else np.zeros(0, bool)
+    if total:
+        for primary, secondary in ((ds, de), (de, ds)):
+            order = np.lexsort((secondary, primary, ~sure, jint))
+            head = np.concatenate([[True], jint[order][1:] != jint[order][:-1]])
+            wit = np.full(n_int, -1, dtype=np.int64)
+            wit[jint[order][head]] = order[head]
+            w = wit[jint]
+            ok = w >= 0
+            wc = np.where(ok, w, 0)
+            is_cand &= ~(ok & sure[wc] & (ds[wc] < ds) & (de[wc] < de))
+    # winner (the renderer's choice at the midpoint): the nearest point present there, then min index
+    mid = 0.5 * (s_j + e_j)
+    present = (visits.t0[own] <= mid) & (mid <= visits.t1[own])
+    _, _, dmid = project(points[vpt], intr, axis, mid)
     winner = np.full(n_int, -1, dtype=np.int64)
-    winner[jint[order][first_of]] = vpt[order][first_of]
-    # candidate lists (CSR); empty intervals get the background (-1)
-    cj, cp = jint[is_cand], vpt[is_cand]
-    empty = np.ones(n_int, bool)
-    empty[cj] = False
-    cj = np.concatenate([cj, np.nonzero(empty)[0]])
-    cp = np.concatenate([cp, np.full(int(empty.sum()), -1, dtype=np.int64)])
+    if present.any():
+        jp, vp_, dp = jint[present], vpt[present], dmid[present]
+        order = np.lexsort((vp_, dp, jp))
+        head = np.concatenate([[True], jp[order][1:] != jp[order][:-1]])
+        winner[jp[order][head]] = vp_[order][head]
+    # candidate lists (CSR); the background wherever no point is surely present
+    has_sure = np.zeros(n_int, bool)
+    has_sure[jint[sure]] = True
+    bgj = np.nonzero(~has_sure)[0]
+    cj = np.concatenate([jint[is_cand], bgj])
+    cp = np.concatenate([vpt[is_cand], np.full(len(bgj), -1, dtype=np.int64)])
     order = np.lexsort((cp, cj))
     cj, cp = cj[order], cp[order]
     ptr = np.zeros(n_int + 1, dtype=np.int64)
     np.add.at(ptr, cj + 1, 1)
     ptr = np.cumsum(ptr)
-    return PixelStates(lo, hi, pix, start, end, winner, ptr, cp)
+    return PixelStates(lo, hi, pix, start, end, winner, ptr, cp, tol)
+
+
+def _depth_order_crossings(points: np.ndarray, axis: str, st: PixelStates) -> tuple[np.ndarray, np.ndarray]:
+    """(pixel, alpha) where two candidates of one interval swap depth order strictly inside it (rx/ry:
+    the depth difference ``A cos t + B sin t`` vanishes at ``atan2(B, A) + pi/2 + k pi``)."""
+    X, Y, Z = points[:, 0], points[:, 1], points[:, 2]
+    real = st.cand_point >= 0
+    cnt = np.add.reduceat(real.astype(np.int64), st.cand_ptr[:-1]) if len(st.cand_point) else np.zeros(len(st.pix), np.int64)
+    cnt = np.where(np.diff(st.cand_ptr) > 0, cnt, 0)
+    out_pix, out_t = [], []
+    for k in np.unique(cnt[cnt >= 2]):
+        js = np.nonzero(cnt == k)[0]
+        # candidate lists are sorted with the background (-1) first: real points are the last k
+        base = st.cand_ptr[js + 1] - k
+        ia, ib = np.triu_indices(int(k), 1)
+        pa = st.cand_point[base[:, None] + ia[None, :]].ravel()
+        pb = st.cand_point[base[:, None] + ib[None, :]].ravel()
+        jj = np.repeat(js, len(ia))
+        A = Z[pa] - Z[pb]
+        B = (Y[pb] - Y[pa]) if axis == "rx" else (X[pa] - X[pb])
+        phi = np.arctan2(B, A) + 0.5 * np.pi
+        s, e = st.start[jj] + st.tol, st.end[jj] - st.tol
+        for m in range(-2, 3):
+            t = phi + m * np.pi
+            ok = (t > s) & (t < e) & ((A != 0) | (B != 0))
+            out_pix.append(st.pix[jj[ok]])
+            out_t.append(t[ok])
+    if not out_pix:
+        return np.zeros(0, np.int64), np.zeros(0)
+    return np.concatenate(out_pix).astype(np.int64), np.concatenate(out_t)
