@@ -15,6 +15,8 @@ setup(
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/launch", glob("launch/*.py")),
         ("share/" + package_name + "/config", glob("config/*.yaml")),
+        # the demo classifier and denoiser (config default model_path bags/models/...)
+        ("share/" + package_name + "/bags/models", glob("bags/models/*")),
     ],
     python_requires=">=3.10",
     install_requires=[

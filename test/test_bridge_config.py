@@ -32,7 +32,8 @@ def test_table_and_dataclass_agree():
 
 def test_demo_defaults():
     cfg = C.PwsConfig()
-    assert cfg.axes == ("tz", "ry") and cfg.method == "pws_of" and cfg.coverage == "pairwise"
+    assert cfg.axes == ("tz", "ry") and cfg.method == "pws_of" and cfg.coverage == "anchors"
+    assert cfg.min_partitions == 33
     assert cfg.radius_tz == 0.010 and cfg.radius_ry == pytest.approx(math.radians(0.25))
     assert (cfg.sigma, cfg.n0, cfg.n, cfg.alpha) == (0.5, 64, 256, 0.01)
     assert cfg.model_path == "bags/models/classifier_sigma0.50.pt"
@@ -148,7 +149,7 @@ def test_spec_table_per_node():
 def test_certify_config_mapping():
     cfg = C.config_from_params({"sigma": 0.25, "n0": 10, "n": 20, "delta": 0.0, "cms_sigma": 0.05})
     cc = cfg.certify_config()
-    assert (cc.sigma, cc.n0, cc.n, cc.delta, cc.cms_sigma, cc.coverage) == (0.25, 10, 20, None, 0.05, "pairwise")
+    assert (cc.sigma, cc.n0, cc.n, cc.delta, cc.cms_sigma, cc.coverage) == (0.25, 10, 20, None, 0.05, "anchors")
 
 
 def test_docs_ros2_is_in_sync_with_the_table_and_schema():

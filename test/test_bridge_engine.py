@@ -53,7 +53,7 @@ def test_process_matches_core_certify(model_path, small_camera):
     model = load_model(model_path)
     for c in res.certificates:
         assert c.status in ("certified", "not_certified") and c.label == 1 and c.class_name == "c1"
-        assert c.method == "pws_of" and c.coverage == "pairwise" and c.n == 32 and c.n0 == 16
+        assert c.method == "pws_of" and c.coverage == "anchors" and c.n == 32 and c.n0 == 16
         assert {"plan", "render", "inference", "statistics", "total"} <= set(c.timings)
         ref = certify(cloud, small_camera, model, c.axis, eng.config.radius_for(c.axis), "pws_of", eng.certify_config())
         assert ref.p_a_lower == c.p_a_lower and ref.radius == c.radius and ref.status == c.status

@@ -407,3 +407,25 @@ def test_axis_names_are_normalised():
     cloud = one_frame_cloud(0)
     assert plan_partitions(cloud, CAM, "Tx", 0.05, "pws").axis == "tx"
     assert plan_partitions(cloud, CAM, " RZ ", 0.05, "pws").axis == "rz"
+
+
+def test_min_partitions_refines_a_coarse_plan():
+    cloud = one_frame_cloud(0, noise=False)
+    radius = RADIUS["ry"] / 20  # a sub-pixel motion: PwS-OF plans the minimum, 3 partitions
+    plan = plan_partitions(cloud, CAM, "ry", radius, "pws_of")
+    assert plan.num_partitions == 3 and "refined_for_min_partitions" not in plan.details
+    fine = plan_partitions(cloud, CAM, "ry", radius, "pws_of", min_partitions=33)
+    assert fine.num_partitions == 33 and fine.details["refined_for_min_partitions"] == 33
+    assert fine.delta_alpha == plan.delta_alpha  # the method's delta_alpha is still reported
+    validate_grid(fine.alphas, radius)
+    np.testing.assert_allclose(np.diff(fine.alphas), radius / 16, rtol=1e-9)
+    assert plan_partitions(cloud, CAM, "ry", radius, "pws_of", min_partitions=34).num_partitions == 35
+    # a plan already finer than asked is left alone
+    dense = plan_partitions(cloud, CAM, "tz", RADIUS["tz"], "pws_of")
+    again = plan_partitions(cloud, CAM, "tz", RADIUS["tz"], "pws_of", min_partitions=5)
+    assert dense.num_partitions > 5 and np.array_equal(dense.alphas, again.alphas)
+    # max_partitions wins (a cost cap must not need a second setting lowered)
+    assert plan_partitions(cloud, CAM, "ry", radius, "pws_of", min_partitions=10**6, max_partitions=1000).num_partitions == 999
+    for bad in (-1, 2.5):
+        with pytest.raises(PwsError):
+            plan_partitions(cloud, CAM, "ry", radius, "pws_of", min_partitions=bad)

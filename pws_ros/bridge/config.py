@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -94,11 +95,14 @@ PARAMS: tuple[ParamSpec, ...] = (
     *(_radius_spec(a) for a in AXES),
     ParamSpec("method", "pws_of", "partitioning method: pws (needs dense_cloud_path), pws_l, pws_of (one-frame cloud), or the cms baseline",
               choices=METHODS, nodes=_PLAN),
-    ParamSpec("coverage", "pairwise", "coverage rule: paper (max M < min R), pairwise (per segment), anchors (p_A at num_anchors frames only)",
+    ParamSpec("coverage", "anchors", "coverage rule: anchors (p_A at num_anchors frames only: the cost no longer grows with the plan), "
+              "pairwise (p_A at every partition, per segment), paper (max M < min R); ignored by cms",
               choices=COVERAGES, nodes=_CERT),
     ParamSpec("delta", 0.0, "PwS-OF delta-convexity constant in pixels; 0 = the core's default", range=(0.0, 100.0), nodes=_PLAN, unit="px"),
     ParamSpec("max_partitions", 20000, "largest number of partitions (frames) a plan may need; bigger plans are refused (ERROR status)",
               range=(3, 1_000_000), nodes=_PLAN),
+    ParamSpec("min_partitions", 33, "refine each plan to at least this many partitions (still sound; tightens the bounds where the method "
+              "plans only a few frames, e.g. sub-pixel motions); 0 = as planned", range=(0, 1_000_000), nodes=_PLAN),
     ParamSpec("dense_cloud_path", "", "prior dense cloud (.npz with points, colors in the camera optical frame) for method pws; empty otherwise",
               read_only=True, nodes=_PLAN),
     ParamSpec("background", 0.0, "pixel value of holes (pixels no point reaches) in rendered frames", range=(0.0, 1.0), nodes=_PLAN),
@@ -173,9 +177,10 @@ class PwsConfig:
     radius_ry: float = PAPER_RADIUS["ry"]
     radius_rz: float = PAPER_RADIUS["rz"]
     method: str = "pws_of"
-    coverage: str = "pairwise"
+    coverage: str = "anchors"
     delta: float = 0.0
     max_partitions: int = 20000
+    min_partitions: int = 33
     dense_cloud_path: str = ""
     background: float = 0.0
     render_width: int = 0
@@ -244,6 +249,7 @@ class PwsConfig:
         return CertifyConfig(sigma=self.sigma, n0=self.n0, n=self.n, alpha=self.alpha, seed=self.seed, device=self.device,
                              batch_size=self.batch_size, coverage=self.coverage, num_anchors=self.num_anchors,
                              background=self.background, max_partitions=self.max_partitions,
+                             min_partitions=self.min_partitions,
                              delta=self.delta if self.delta > 0 else None,
                              cms_sigma=self.cms_sigma if self.cms_sigma > 0 else None)
 
@@ -312,7 +318,6 @@ def check_consistency(cfg: PwsConfig) -> None:
             "method pws needs the entire scene cloud: set dense_cloud_path (or use pws_of / pws_l with the one-frame cloud)")
     require((cfg.render_width == 0) == (cfg.render_height == 0),
             f"render_width and render_height must both be 0 or both set, got {cfg.render_width}x{cfg.render_height}")
-    require(cfg.coverage != "anchors" or cfg.method != "cms", "coverage anchors does not apply to the cms baseline")
 
 
 def config_from_params(params: dict[str, Any] | None = None, *, check: bool = True, ignore_unknown: Iterable[str] = ("use_sim_time",)) -> PwsConfig:
@@ -409,6 +414,7 @@ def package_share_dirs() -> list[Path]:
     env = os.environ.get("PWS_ROS_SHARE")
     if env:
         dirs.append(Path(env))
+    dirs.append(Path(sys.prefix) / "share" / "pws_ros")  # data_files of a pip install
     dirs.append(Path(__file__).resolve().parents[2])
     return dirs
 

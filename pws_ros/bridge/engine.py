@@ -199,7 +199,8 @@ class FrameCertifier:
         c = self.config
         require(c.method != "cms", "method cms has no partition plan")
         return plan_partitions(cloud, cam, axis, c.radius_for(axis), c.method,
-                               delta=c.delta if c.delta > 0 else None, max_partitions=c.max_partitions)
+                               delta=c.delta if c.delta > 0 else None, max_partitions=c.max_partitions,
+                               min_partitions=c.min_partitions)
 
     def plan_bundle(self, cloud: Cloud, intr: CameraIntrinsics, stamp_ns: int, frame_id: str = "",
                     dense_cloud: Cloud | None = None) -> PlanBundle:

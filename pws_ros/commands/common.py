@@ -53,6 +53,9 @@ def add_plan_args(p: argparse.ArgumentParser, methods=PLAN_METHODS, default="pws
                    help=f"PwS-OF delta-convexity constant in pixels (default {DEFAULT_DELTA_PX})")
     p.add_argument("--max-partitions", type=positive_int, default=DEFAULT_MAX_PARTITIONS, metavar="N",
                    help=f"refuse plans with more partitions than this (default {DEFAULT_MAX_PARTITIONS})")
+    p.add_argument("--min-partitions", type=int, default=0, metavar="N",
+                   help="refine the planned grid to at least N partitions (still sound; tighter bounds where the method "
+                        "plans only a few frames; default 0 = as planned)")
 
 
 def add_smoothing_args(p: argparse.ArgumentParser) -> None:
@@ -75,7 +78,8 @@ def add_smoothing_args(p: argparse.ArgumentParser) -> None:
 def config_from_args(args) -> CertifyConfig:
     return CertifyConfig(sigma=args.sigma, n0=args.n0, n=args.n, alpha=args.alpha, seed=args.seed, device=args.device,
                          batch_size=args.batch_size, coverage=args.coverage, num_anchors=args.num_anchors,
-                         background=args.background, max_partitions=args.max_partitions, delta=args.delta,
+                         background=args.background, max_partitions=args.max_partitions,
+                         min_partitions=args.min_partitions, delta=args.delta,
                          cms_sigma=args.cms_sigma).validate()
 
 

@@ -18,7 +18,8 @@ def register(sub) -> None:
 
 def run(args) -> int:
     cloud, intr = load_scene(args)
-    plan = plan_partitions(cloud, intr, args.axis, args.radius, args.method, delta=args.delta, max_partitions=args.max_partitions)
+    plan = plan_partitions(cloud, intr, args.axis, args.radius, args.method, delta=args.delta, max_partitions=args.max_partitions,
+                           min_partitions=args.min_partitions)
     if args.out:
         plan.to_json(args.out, indent=1)
     d = plan.to_dict()

@@ -131,7 +131,7 @@ def register(subparsers) -> None:
     c.add_argument("--method", default=None, choices=("pws_of", "pws", "pws_l", "cms"),
                    help="pws_of (one-frame cloud, default), pws_l (Lipschitz), pws (the entire scene cloud: dense_cloud_path, or "
                         "regenerated from the ground truth of a pws sim recording), cms (baseline)")
-    c.add_argument("--coverage", default=None, choices=("pairwise", "paper", "anchors"), help="coverage rule (default: config, pairwise)")
+    c.add_argument("--coverage", default=None, choices=("pairwise", "paper", "anchors"), help="coverage rule (default: config coverage, anchors)")
     c.add_argument("--n0", type=int, default=None, help="noise samples selecting the top class")
     c.add_argument("--n", type=int, default=None, help="noise samples per bound estimating p_A")
     c.add_argument("--sigma", type=float, default=None, help="pixel noise sigma of the smoothed classifier (images in [0, 1])")
@@ -142,6 +142,9 @@ def register(subparsers) -> None:
     c.add_argument("--max-partitions", type=int, default=None,
                    help="refuse plans needing more partitions than this (an ERROR status for that axis, at once); a quick cap "
                         "on the cost per frame (default: config max_partitions, 20000)")
+    c.add_argument("--min-partitions", type=int, default=None,
+                   help="refine each plan to at least this many partitions (still sound; tightens the bounds where the method "
+                        "plans only a few frames; default: config min_partitions)")
     c.add_argument("--model", default=None, help="TorchScript classifier (default: config model_path, bags/models/classifier_sigma0.50.pt)")
     c.add_argument("--classes", default=None, help="class-names file (default: beside the model)")
     c.add_argument("--denoiser", default=None, help="optional TorchScript denoiser")
@@ -184,7 +187,8 @@ def build_config(args: argparse.Namespace):
     simple = {"method": "method", "coverage": "coverage", "n0": "n0", "n": "n", "sigma": "sigma", "alpha": "alpha", "seed": "seed",
               "device": "device", "batch_size": "batch_size", "model": "model_path", "classes": "classes_path",
               "denoiser": "denoiser_path", "dense_cloud": "dense_cloud_path", "sync_tolerance": "sync_tolerance_s",
-              "preview_every": "preview_every", "max_partitions": "max_partitions"}
+              "preview_every": "preview_every", "max_partitions": "max_partitions",
+              "min_partitions": "min_partitions"}
     for attr, name in simple.items():
         v = getattr(args, attr, None)
         if v is not None:

@@ -54,6 +54,7 @@ class CertifyConfig:
     num_anchors: int = 9
     background: float = 0.0
     max_partitions: int = DEFAULT_MAX_PARTITIONS
+    min_partitions: int = 0
     delta: float | None = None
     cms_sigma: float | None = None
     chunk: int = 128
@@ -65,6 +66,7 @@ class CertifyConfig:
         require(self.coverage in COVERAGES, f"unknown coverage rule {self.coverage!r}: expected one of {', '.join(COVERAGES)}")
         require(int(self.num_anchors) >= 1, f"num_anchors must be >= 1, got {self.num_anchors}")
         require(int(self.batch_size) >= 1, f"batch_size must be >= 1, got {self.batch_size}")
+        require(int(self.min_partitions) >= 0, f"min_partitions must be >= 0, got {self.min_partitions}")
         require(math.isfinite(self.background), f"background must be finite, got {self.background}")
         return self
 
@@ -134,7 +136,8 @@ def certify(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, axis: str,
                            background=config.background, progress=progress)
     t_start = time.perf_counter()
     if plan is None:
-        plan = plan_partitions(cloud, intr, axis, radius, method, delta=config.delta, max_partitions=config.max_partitions)
+        plan = plan_partitions(cloud, intr, axis, radius, method, delta=config.delta, max_partitions=config.max_partitions,
+                               min_partitions=int(config.min_partitions))
     else:
         require(plan.axis == axis, f"plan is for axis {plan.axis}, not {axis}")
         require(abs(plan.radius - radius) <= 1e-12 * radius, f"plan is for radius {plan.radius:g}, not {radius:g}")

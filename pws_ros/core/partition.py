@@ -227,17 +227,23 @@ def planning_window(points: np.ndarray, intr: CameraIntrinsics, axis: str, radiu
 
 
 def plan_partitions(cloud: Cloud, intr: CameraIntrinsics, axis: str, radius: float, method: str = "pws_of",
-                    delta: float | None = None, max_partitions: int = DEFAULT_MAX_PARTITIONS) -> Plan:
+                    delta: float | None = None, max_partitions: int = DEFAULT_MAX_PARTITIONS,
+                    min_partitions: int = 0) -> Plan:
     """Plan the uniform partition of ``[-radius, radius]`` along ``axis`` with ``method``.
 
     ``cloud`` is the entire cloud for ``pws`` and the one-frame cloud for ``pws_of`` (``pws_l`` uses
     whichever it is given). ``delta`` (pixels) is the delta-convexity constant of PwS-OF.
+    ``min_partitions`` (capped by ``max_partitions``) refines the grid to at least that many partitions when the method's
+    ``delta_alpha`` asks for fewer (``plan.delta_alpha`` stays the method's value; ``details`` records
+    the refinement). A finer grid is just as sound, and it tightens the per-segment bounds: where the
+    method needs only a handful of frames (a motion of a pixel or less) the coverage rules need more.
     """
     t0 = time.perf_counter()
     axis = parse_axis(axis)
     radius = check_radius(radius)
     require(method in PLAN_METHODS, f"unknown planning method {method!r}: expected one of {', '.join(PLAN_METHODS)}")
     require(isinstance(max_partitions, int) and max_partitions >= 3, f"max_partitions must be an integer >= 3, got {max_partitions!r}")
+    require(isinstance(min_partitions, int) and min_partitions >= 0, f"min_partitions must be an integer >= 0, got {min_partitions!r}")
     cloud.require_nonempty()
     pts = cloud.points[cloud.points[:, 2] > 0]
     window = planning_window(pts, intr, axis, radius)
@@ -286,7 +292,13 @@ def plan_partitions(cloud: Cloud, intr: CameraIntrinsics, axis: str, radius: flo
     if not math.isfinite(delta_alpha) or delta_alpha > radius:
         delta_alpha = radius
     require(delta_alpha > 0, "a consistent interval of zero length was found (degenerate cloud: duplicate points?)")
-    alphas = make_grid(radius, delta_alpha, max_partitions)
+    step = delta_alpha
+    if min_partitions > 3:
+        m_min = min(min_partitions // 2, (max_partitions - 1) // 2)  # 2 m + 1 >= min_partitions, <= max_partitions
+        if radius / m_min < step:
+            step = radius / m_min
+            details["refined_for_min_partitions"] = int(min_partitions)
+    alphas = make_grid(radius, step, max_partitions)
     shortest = min(float(lengths.min()) if len(lengths) else math.inf, runs.hole_min_length)
     details["lemma1_holds"] = bool(shortest >= (alphas[1] - alphas[0]))  # every run (holes too) >= step
     details["min_run"] = shortest
