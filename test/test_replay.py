@@ -578,10 +578,9 @@ def test_real_bags_without_camera_data_name_the_problem(bag, models, tmp_path, c
     assert not (tmp_path / "o").exists()
 
 
-def test_shipped_demo_bag_when_present(models, tmp_path, capsys):
+def test_shipped_demo_bag(models, tmp_path, capsys):
     demo = Path(__file__).resolve().parents[1] / "bags" / "demo"
-    if not (demo / "metadata.yaml").is_file():
-        pytest.skip("bags/demo is not there yet")
+    assert (demo / "metadata.yaml").is_file(), "bags/demo (the shipped recording) is missing"
     rc, stdout, err = run_cli([demo, "--no-output", "--model", models["linear"], *TINY, "--max-frames", "2", "--json"], capsys)
     assert rc == 0, err
     s = json.loads(stdout)
