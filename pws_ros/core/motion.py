@@ -104,6 +104,21 @@ def transform(points, axis: str, alpha, xp=np):
     raise PwsError(f"unknown motion axis {axis!r}")
 
 
+def depth(points, axis: str, alpha, xp=np):
+    """Depth ``Z'`` of ``points[..., 3]`` under motion ``alpha`` (the third coordinate of :func:`transform`,
+    computed alone)."""
+    X, Y, Z = points[..., 0], points[..., 1], points[..., 2]
+    if axis == "tz":
+        return Z - alpha
+    if axis == "rx":
+        return -xp.sin(alpha) * Y + xp.cos(alpha) * Z
+    if axis == "ry":
+        return xp.sin(alpha) * X + xp.cos(alpha) * Z
+    if axis in AXES:
+        return Z + 0 * alpha
+    raise PwsError(f"unknown motion axis {axis!r}")
+
+
 def project(points, intr: CameraIntrinsics, axis: str, alpha, xp=np):
     """Pixel-edge coordinates ``(u, v)`` and depth ``D`` of points under motion ``alpha``.
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .camera import CameraIntrinsics
-from .motion import PIXEL_OVERLAP, pixel_span, project, split_points
+from .motion import PIXEL_OVERLAP, depth, pixel_span, project, split_points
 
 BISECT_ITERS = 64
 
@@ -258,44 +258,55 @@ def _states(points, intr, axis, lo, hi, visits: Visits, tol: float, extra_pix, e
     own = np.repeat(np.arange(len(visits)), cnt)
     off = np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt)
     jint = np.repeat(first, cnt) + off
+    # group the pairs by interval (every interval has at least one pair or none at all)
+    order = np.argsort(jint, kind="stable")
+    jint, own = jint[order], own[order]
     vpt = visits.point[own]
     s_j, e_j = start[jint], end[jint]
     sure = (d0[own] <= s_j) & (e_j <= d1[own])
+    if total:
+        g_first = np.concatenate([[True], jint[1:] != jint[:-1]])
+        g_start = np.nonzero(g_first)[0]
+        g_int = jint[g_start]
+        gid = np.cumsum(g_first) - 1
+    else:
+        g_start = g_int = gid = np.zeros(0, np.int64)
+
+    def group_min(x):
+        return np.minimum.reduceat(x, g_start) if total else x[:0]
+
     # Candidates: Q is dropped only if some surely present point R is strictly nearer than Q at both
     # ends of the interval. Depth differences of two points are linear in alpha (translations),
     # constant (rz) or harmonic (rx, ry: a sign change needs a zero, and two zeros are pi apart), so on
     # an interval shorter than pi "nearer at both ends" means nearer throughout: the test never drops
-    # a point that can win.
-    _, _, ds = project(points[vpt], intr, axis, s_j)
-    _, _, de = project(points[vpt], intr, axis, e_j)
+    # a point that can win. Witnesses: the surely present point nearest at the start (ties: nearest
+    # at the end) and the one nearest at the end (ties: nearest at the start).
+    P = points[vpt]
+    ds = depth(P, axis, s_j)
+    de = depth(P, axis, e_j)
     is_cand = np.ones(total, dtype=bool)
-    if total:
-        for primary, secondary in ((ds, de), (de, ds)):
-            order = np.lexsort((secondary, primary, ~sure, jint))
-            head = np.concatenate([[True], jint[order][1:] != jint[order][:-1]])
-            wit = np.full(n_int, -1, dtype=np.int64)
-            wit[jint[order][head]] = order[head]
-            w = wit[jint]
-            ok = w >= 0
-            wc = np.where(ok, w, 0)
-            is_cand &= ~(ok & sure[wc] & (ds[wc] < ds) & (de[wc] < de))
+    for primary, secondary in ((ds, de), (de, ds)):
+        p_sure = np.where(sure, primary, np.inf)
+        p_min = group_min(p_sure)[gid]
+        s_w = group_min(np.where(sure & (p_sure == p_min), secondary, np.inf))[gid]
+        is_cand &= ~((p_min < primary) & (s_w < secondary))
     # winner (the renderer's choice at the midpoint): the nearest point present there, then min index
     mid = 0.5 * (s_j + e_j)
     present = (visits.t0[own] <= mid) & (mid <= visits.t1[own])
-    _, _, dmid = project(points[vpt], intr, axis, mid)
+    dm = np.where(present, depth(P, axis, mid), np.inf)
+    dm_min = group_min(dm)[gid]
+    big = np.iinfo(np.int64).max
+    w = group_min(np.where(present & (dm == dm_min), vpt, big))
     winner = np.full(n_int, -1, dtype=np.int64)
-    if present.any():
-        jp, vp_, dp = jint[present], vpt[present], dmid[present]
-        order = np.lexsort((vp_, dp, jp))
-        head = np.concatenate([[True], jp[order][1:] != jp[order][:-1]])
-        winner[jp[order][head]] = vp_[order][head]
-    # candidate lists (CSR); the background wherever no point is surely present
+    winner[g_int] = np.where(w == big, -1, w)
+    # candidate lists (CSR, background first); the background wherever no point is surely present
     has_sure = np.zeros(n_int, bool)
-    has_sure[jint[sure]] = True
+    if total:
+        has_sure[g_int] = np.maximum.reduceat(sure, g_start)
     bgj = np.nonzero(~has_sure)[0]
-    cj = np.concatenate([jint[is_cand], bgj])
-    cp = np.concatenate([vpt[is_cand], np.full(len(bgj), -1, dtype=np.int64)])
-    order = np.lexsort((cp, cj))
+    cj = np.concatenate([bgj, jint[is_cand]])
+    cp = np.concatenate([np.full(len(bgj), -1, dtype=np.int64), vpt[is_cand]])
+    order = np.argsort(cj, kind="stable")
     cj, cp = cj[order], cp[order]
     ptr = np.zeros(n_int + 1, dtype=np.int64)
     np.add.at(ptr, cj + 1, 1)
