@@ -179,10 +179,9 @@ def test_previews(model_path, small_camera):
         np.testing.assert_array_equal(img, np.clip(np.rint(frames[i].astype(np.float64) * 255), 0, 255).astype(np.uint8))
 
 
-def test_device_fallback_and_bad_device(model_path):
+def test_device_fallback_and_bad_device(model_path, monkeypatch):
     logs = []
-    if torch.cuda.is_available():
-        pytest.skip("CUDA is available here: no fallback to test")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # the same on a machine with a GPU
     assert resolve_device_with_fallback("cuda:0", lambda level, m: logs.append((level, m))) == "cpu"
     assert logs == [("warn", "device cuda:0 requested but CUDA is not available; falling back to cpu")]
     eng, logs = make_engine(model_path, device="cuda:1")

@@ -214,10 +214,7 @@ def test_pws_l_delta_is_below_every_visit(kind, seed, axis):
     than the shortest visit of any point to any pixel."""
     cloud = scene(kind, seed)
     radius = RADIUS[axis]
-    try:
-        plan = plan_partitions(cloud, CAM, axis, radius, "pws_l")
-    except PwsError as exc:
-        pytest.skip(f"plan refused: {exc}")
+    plan = plan_partitions(cloud, CAM, axis, radius, "pws_l")
     window = plan.details["window"]
     vis = inner_visits(cloud.points, CAM, axis, radius, window)
     assert plan.delta_alpha <= min(float((vis.t1 - vis.t0).max(initial=radius)), radius)
