@@ -785,7 +785,7 @@ def render_markdown(res: dict, summ: dict, cl: list[dict], est: dict, plots: lis
                    [[p["num_partitions"], frac(*p["pairwise"]), frac(*p["paper"]), f"{p['curve_mean']:.2f}", fmt(p["min_p_a_lower"]), fmt(p["M"]), fmt(p["R_min"]),
                      fmt_n(p["classifier_calls"]), fmt(p["seconds"])] for p in summ["partitions"]]))
     L.append("\n![partitions](partitions.png)\n")
-    L.append(f"### Certified vs empirical robust vs benign accuracy (PwS-OF, one-frame cloud)\n")
+    L.append("### Certified vs empirical robust vs benign accuracy (PwS-OF, one-frame cloud)\n")
     L.append(f"Empirical robust: the smoothed prediction (majority of {s['empirical_n']} noisy samples) at "
              f"{s['empirical_perturbations']} uniform motions in [-b, b] all equal the label; benign: the same at α = 0; clean: the "
              "base classifier without noise at α = 0.\n")

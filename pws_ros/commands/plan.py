@@ -30,6 +30,6 @@ def run(args) -> int:
         f"delta_alpha     {plan.delta_alpha:.6g}",
         f"num_partitions  {plan.num_partitions}",
         f"alphas          {plan.alphas[0]:g} .. {plan.alphas[-1]:g} (step {plan.alphas[1] - plan.alphas[0]:.6g}, contains 0)",
-        f"details         " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in plan.details.items()),
+        "details         " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in plan.details.items()),
     ] + ([f"written         {args.out}"] if args.out else []))
     return 0

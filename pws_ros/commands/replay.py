@@ -156,7 +156,7 @@ def register(subparsers) -> None:
     i.add_argument("--color-topic", default=None, help="colour Image topic")
     i.add_argument("--info-topic", default=None, help="CameraInfo of the colour camera")
     i.add_argument("--depth-info-topic", default=None, help="CameraInfo of the depth stream (depth whose intrinsics differ is refused)")
-    i.add_argument("--truth-topic", default=None, help=f"ground-truth DiagnosticArray topic (default: /pws/ground_truth when present)")
+    i.add_argument("--truth-topic", default=None, help="ground-truth DiagnosticArray topic (default: /pws/ground_truth when present)")
     i.add_argument("--sync-tolerance", type=float, default=None, help="largest depth/colour stamp difference of one frame, s (default: config, 0.02)")
     i.add_argument("--max-frames", type=int, default=None, metavar="K", help="stop after K input frames")
     i.add_argument("--realtime", action="store_true", help="the live node's online policy: a frame arriving (recorded stamps) while a "

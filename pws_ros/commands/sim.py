@@ -75,7 +75,6 @@ def _record(args) -> int:
 
 def _view(args) -> int:
     import cv2
-    import numpy as np
 
     from ..sim import render_view
 

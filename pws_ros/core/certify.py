@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass
 from typing import Any, Callable
 
 import numpy as np
@@ -29,7 +29,7 @@ import torch
 from .bounds import SegmentValues, segment_values
 from .camera import CameraIntrinsics
 from .cloud import Cloud
-from .errors import PwsError, require
+from .errors import require
 from .model import LoadedModel
 from .motion import UNITS, parse_axis
 from .partition import DEFAULT_MAX_PARTITIONS, Plan, check_radius, plan_partitions, validate_grid
