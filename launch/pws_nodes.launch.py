@@ -3,7 +3,7 @@
     ros2 launch pws_ros pws_nodes.launch.py depth:=/camera/aligned_depth_to_color/image_raw \
         color:=/camera/color/image_raw camera_info:=/camera/color/camera_info
 
-cloud_listener -> cloud, cloud/camera_info -> partition_planner -> plan, plan/poses/<axis> ->
+cloud_listener -> cloud, cloud/camera_info -> partition_planner -> plan/cloud, plan, plan/poses/<axis> ->
 projector -> rendered/frames, rendered/bounds, rendered/errors, rendered/preview -> certifier ->
 certification, certification/markers (+ /diagnostics from each). Same arguments as pws.launch.py.
 Prefer pws.launch.py (the pipeline) for speed: here every rendered frame is serialised.

@@ -132,7 +132,9 @@ def test_resolve_path(tmp_path, monkeypatch):
     assert C.resolve_path(str(f)) == f
     monkeypatch.chdir(tmp_path)
     assert C.resolve_path("m.pt") == tmp_path / "m.pt"
-    assert C.resolve_path("config/pws.yaml") == REPO / "config" / "pws.yaml"  # the source checkout
+    # the installed package share (a colcon install), else the source checkout: the same file
+    found = C.resolve_path("config/pws.yaml")
+    assert found.name == "pws.yaml" and found.read_bytes() == (REPO / "config" / "pws.yaml").read_bytes()
     with pytest.raises(PwsError, match="model file not found: nope.pt"):
         C.resolve_path("nope.pt", "model file")
     with pytest.raises(PwsError, match="path is empty"):

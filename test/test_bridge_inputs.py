@@ -53,11 +53,21 @@ def test_rgbd_frames_are_matched_and_converted():
     assert asm.on_color(color_msg(210 * MS)) is None
 
 
-def test_rgbd_without_camera_info_is_reported():
-    asm = InputAssembler(config_from_params({"input_mode": "rgbd"}))
+def test_rgbd_pair_waits_for_the_first_camera_info():
+    """Drivers often start CameraInfo a little after the images: the newest matched pair is held
+    (an older held one is replaced and counted as dropped) and completed by the first CameraInfo."""
+    asm = InputAssembler(config_from_params({"input_mode": "rgbd", "sync_tolerance_s": 0.0}))
     asm.on_depth(depth_msg(1))
-    with pytest.raises(PwsError, match="no CameraInfo yet"):
-        asm.on_color(color_msg(1))
+    assert asm.on_color(color_msg(1)) is None and asm.waiting_for_info and asm.dropped == 0
+    asm.on_depth(depth_msg(2))
+    assert asm.on_color(color_msg(2)) is None and asm.dropped == 1  # the pair of stamp 1 is replaced
+    raw = asm.on_info(info_msg())
+    assert raw is not None and raw.stamp_ns == 2 and not asm.waiting_for_info and asm.frames == 1
+    assert len(convert(raw, asm.config).cloud) == 47
+    assert asm.on_info(info_msg()) is None  # nothing held any more
+    asm.on_depth(depth_msg(3))
+    raw = asm.on_color(color_msg(3))  # from now on the latest CameraInfo completes each pair at once
+    assert raw is not None and raw.stamp_ns == 3 and raw.messages["info"] is not None
 
 
 def test_stamp_synced_camera_info():

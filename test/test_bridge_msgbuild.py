@@ -139,7 +139,10 @@ def test_markers_health_camera_info_serialise():
     health = cdr_roundtrip(msgbuild.health_status(hdr, node_name="pipeline", types=T, rate_hz=0.5, frames_in=10, frames_processed=3,
                                                   frames_dropped=7, device="cpu", extra={"warning_fallback": "cuda:0 -> cpu"}))
     d = msgbuild.diagnostic_array_to_dicts(health)[0]
-    assert d["name"] == "pipeline: health" and d["level"] == 0
+    assert d["name"] == "pipeline: health" and d["level"] == 0 and d["message"] == "3 frames processed, 7 dropped"
+    planner = msgbuild.health_status(hdr, node_name="partition_planner", types=T, rate_hz=0.5, frames_in=10, frames_processed=3,
+                                     frames_dropped=7, device="cpu", activity="planned")
+    assert msgbuild.diagnostic_array_to_dicts(planner)[0]["message"] == "3 frames planned, 7 dropped"
     assert d["values"]["frames_dropped"] == "7" and d["values"]["device"] == "cpu" and d["keys"][-1] == "warning_fallback"
     err = msgbuild.health_status(hdr, node_name="p", types=T, rate_hz=0, frames_in=0, frames_processed=0, frames_dropped=0,
                                  device="cpu", last_error="model not found")

@@ -342,3 +342,43 @@ def test_certifier_ignores_malformed_messages(bus, model_path):
         assert [lvl for lvl, _ in ctx.logs if lvl == "warn"]
     finally:
         node.close()
+
+
+def test_four_processes_keep_up_with_a_fast_camera(model_path):
+    """The camera runs faster than planning: many newer clouds arrive while a frame is planned, and
+    the projector must still render the frame that was planned (the live ROS check found its cloud
+    evicted by newer ones: 'no cloud with stamp ...'). The planner hands the planned cloud on."""
+    bus = Bus()
+    ctxs, nodes = four_nodes(bus, model_path)
+    planner = nodes[1]
+    slow_plan = planner.engine.plan_bundle
+
+    def plan_bundle(*args, **kwargs):  # planning as slow as on a big cloud
+        time.sleep(0.4)
+        return slow_plan(*args, **kwargs)
+
+    planner.engine.plan_bundle = plan_bundle
+
+    def settled():  # nothing in transport, no worker busy or with work waiting
+        nodes[3]._poll()  # the certifier's timer (its health timer would keep the bus busy)
+        return bus.idle() and all(not n.worker.busy and not n.worker.slot.peek_full() for n in nodes)
+
+    try:
+        stamps = [T0 + k * 30_000_000 for k in range(30)]
+        for stamp in stamps:  # a 33 Hz camera
+            for topic, msg in frame_messages(stamp).items():
+                bus.publish(topic, msg)
+            time.sleep(0.03)
+        planned = lambda: len(bus.published["/plan"])  # noqa: E731
+        certs = bus.published["/certification"]
+        assert wait_for(lambda: planned() >= 2 and settled() and (time.sleep(0.3) or settled()) and len(certs) >= 1)
+        assert len(bus.published["/cloud"]) > 2 * planned()  # the camera did outrun the planner
+        assert not bus.published["/rendered/errors"], [m.data for m in bus.published["/rendered/errors"]]
+        for m in certs:  # (the certifier's own online policy may drop a frame, never fail one)
+            for axis, v in msgbuild.parse_certification(m).items():
+                assert v["level"] in (0, 1), (axis, v["message"])
+        assert not bus.errors
+    finally:
+        for nd in nodes:
+            nd.close()
+        bus.close()

@@ -170,3 +170,35 @@ def _uses(node_name, param):
     from pws_ros.bridge.config import SPECS
 
     return node_name in SPECS[param].nodes
+
+
+def test_health_goes_on_when_sim_time_stops(ros, make_model_file):
+    """With use_sim_time and no /clock (a paused or finished `ros2 bag play --clock`) the node clock
+    stands still; health reports (and the certifier's hand-over timer) run on the steady clock."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    from pws_ros.nodes._ros import NodeContext, qos, rclpy_types
+    from pws_ros.nodes.pipeline import PipelineNode
+
+    params = parameters(make_model_file(input_size=(24, 32))) + [Parameter("use_sim_time", value=True)]
+    node = Node("pipeline", parameter_overrides=params)
+    logic = PipelineNode(NodeContext(node, "pipeline"))
+    listener = Node("health_listener")
+    health = []
+    listener.create_subscription(rclpy_types().DiagnosticArray, "/diagnostics", health.append, qos("reliable", 50))
+    ex = SingleThreadedExecutor()
+    ex.add_node(node)
+    ex.add_node(listener)
+    try:
+        end = time.monotonic() + 5.0
+        while time.monotonic() < end and len(health) < 3:
+            ex.spin_once(timeout_sec=0.1)
+        assert node.get_clock().now().nanoseconds == 0  # sim time, no /clock
+        assert len(health) >= 3
+    finally:
+        logic.close()
+        ex.shutdown()
+        listener.destroy_node()
+        node.destroy_node()

@@ -65,6 +65,10 @@ class InputAssembler:
         self.frames = 0         # complete frames produced
         self._last_stamp: int | None = None
         self.locked_source: str | None = None if self.mode == "auto" else self.mode
+        # a depth + colour pair matched before any CameraInfo arrived (camera_info_sync: latest):
+        # held (the newest one only) and completed by the first CameraInfo instead of being lost
+        self._held: dict[str, Any] | None = None
+        self.held_replaced = 0
 
     # -- helpers --
     def _accept_source(self, source: str) -> bool:
@@ -88,8 +92,14 @@ class InputAssembler:
 
     @property
     def dropped(self) -> int:
-        """Input messages that could not be matched into a frame (stamp matching)."""
-        return self.matcher.total_dropped()
+        """Input messages that could not be matched into a frame (stamp matching), plus depth +
+        colour pairs replaced by a newer one while both waited for the first CameraInfo."""
+        return self.matcher.total_dropped() + self.held_replaced
+
+    @property
+    def waiting_for_info(self) -> bool:
+        """True while a depth + colour pair waits for the first CameraInfo."""
+        return self._held is not None
 
     # -- callbacks --
     def on_info(self, msg: Any) -> RawFrame | None:
@@ -97,6 +107,9 @@ class InputAssembler:
             self.latest_info = msg
             if self.config.camera_info_sync == "stamp" and self._accept_source("rgbd"):
                 return self._match("info", msg)
+            if self._held is not None:
+                msgs, self._held = self._held, None
+                return self._rgbd_frame(msgs)
             return None
 
     def on_depth_info(self, msg: Any) -> None:
@@ -131,11 +144,19 @@ class InputAssembler:
         msgs = dict(got.messages)
         if "info" not in msgs:
             if self.latest_info is None:
-                raise PwsError("depth and colour arrived but no CameraInfo yet on camera_info_topic")
+                # CameraInfo often starts a little after the images: hold the newest pair for it
+                if self._held is not None:
+                    self.held_replaced += 1
+                self._held = msgs
+                return None
             msgs["info"] = self.latest_info
+        return self._rgbd_frame(msgs)
+
+    def _rgbd_frame(self, msgs: dict[str, Any]) -> RawFrame | None:
+        msgs.setdefault("info", self.latest_info)
         if self.latest_depth_info is not None:
             msgs["depth_info"] = self.latest_depth_info
-        color = got.messages["color"]
+        color = msgs["color"]
         return self._emit(RawFrame("rgbd", msgconv.header_stamp_ns(color), color.header, msgs))
 
 

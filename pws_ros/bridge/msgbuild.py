@@ -446,18 +446,20 @@ def markers_for(header: Any, certs: Sequence[Certificate], types: Any, *, ns: st
 
 def health_status(header: Any, *, node_name: str, types: Any, rate_hz: float, frames_in: int, frames_processed: int,
                   frames_dropped: int, device: str, last_error: str = "", warning: str = "",
-                  extra: dict[str, Any] | None = None) -> Any:
+                  extra: dict[str, Any] | None = None, activity: str = "processed") -> Any:
     """A ``/diagnostics`` DiagnosticArray with one status ``<node_name>: health``.
 
-    Level ERROR when ``last_error`` is set, WARN when ``warning`` is set, else OK. Keys: rate_hz,
-    frames_in, frames_processed, frames_dropped, device, last_error, then ``extra``.
+    Level ERROR when ``last_error`` is set, WARN when ``warning`` is set, else OK with the message
+    ``"<frames_processed> frames <activity>, <frames_dropped> dropped"`` (activity: what the node does
+    to a frame: certified, converted, planned, rendered). Keys: rate_hz, frames_in,
+    frames_processed, frames_dropped, device, last_error, then ``extra``.
     """
     if last_error:
         level, message = "ERROR", " ".join(str(last_error).split())
     elif warning:
         level, message = "WARN", " ".join(str(warning).split())
     else:
-        level, message = "OK", f"{frames_processed} frames certified, {frames_dropped} dropped"
+        level, message = "OK", f"{frames_processed} frames {activity}, {frames_dropped} dropped"
     pairs: list[tuple[str, Any]] = [
         ("rate_hz", float(rate_hz)), ("frames_in", int(frames_in)), ("frames_processed", int(frames_processed)),
         ("frames_dropped", int(frames_dropped)), ("device", str(device)), ("last_error", " ".join(str(last_error).split())),

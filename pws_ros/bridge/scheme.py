@@ -2,6 +2,9 @@
 
 Per input frame (source stamp ``S`` in ns, source optical frame ``F``):
 
+``plan/cloud`` — ``sensor_msgs/PointCloud2``, header ``(S, F)``: the one-frame cloud that was planned,
+    handed on by the planner just before its ``plan`` (the projector renders from it; the camera
+    outruns planning, so it must not be looked up among the newer clouds on ``cloud``).
 ``plan`` — ``std_msgs/String`` (JSON, :func:`plan_bundle_to_json`)
     ``{"format": "pws_ros/plan-bundle/1", "stamp_ns": S, "frame_id": F, "method": ..., "axes": [...],
     "camera": {...render intrinsics...}, "plans": {axis: Plan.to_dict()}, "errors": {axis: reason}}``.

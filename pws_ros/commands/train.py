@@ -9,7 +9,7 @@ from ..core.errors import PwsError, require
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--preset", choices=("full", "tiny"), default="full", help="full: the shipped recipe (~20-30 min on 2 CPU cores); tiny: seconds, for tests")
+    p.add_argument("--preset", choices=("full", "tiny"), default="full", help="full: the shipped recipe (about 5 min on 2 idle CPU cores, longer on a busy machine); tiny: seconds, for tests")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=2, help="processes generating training views")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")

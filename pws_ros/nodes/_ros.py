@@ -10,6 +10,7 @@ from typing import Any, Callable
 import numpy as np
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_policy_name_from_kind,
@@ -172,15 +173,25 @@ class NodeContext:
             self.on_change(cfg)
 
     def timer(self, period_s: float, callback: Callable[[], None]) -> Any:
-        return self.node.create_timer(float(period_s), callback)
+        """A timer on the steady (wall) clock, not the node clock: with use_sim_time the node clock
+        stops when `ros2 bag play --clock` pauses or ends, and health reports and the certifier's
+        hand-over of assembled frames must go on then."""
+        return self.node.create_timer(float(period_s), callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def resolve(self, topic: str) -> str:
         return self.node.resolve_topic_name(topic)
 
     # logging with the (level, message) signature of the bridge
     def log(self, level: str, message: str) -> None:
+        # one call site per severity: rclpy remembers the severity of each calling line and raises
+        # "Logger severity cannot be changed between calls" if one line logs at two levels
         logger = self.node.get_logger()
-        {"info": logger.info, "warn": logger.warning, "error": logger.error}.get(level, logger.info)(message)
+        if level == "error":
+            logger.error(message)
+        elif level == "warn":
+            logger.warning(message)
+        else:
+            logger.info(message)
 
     def now_ns(self) -> int:
         """Node clock now (sim time when use_sim_time is set)."""

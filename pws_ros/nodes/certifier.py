@@ -137,7 +137,7 @@ class CertifierNode:
 
     def _counters(self) -> dict[str, Any]:
         w = self.worker
-        return {"rate_hz": w.rate.rate(), "frames_in": w.slot.accepted, "frames_processed": self.certified,
+        return {"activity": "certified", "rate_hz": w.rate.rate(), "frames_in": w.slot.accepted, "frames_processed": self.certified,
                 "frames_dropped": w.slot.dropped, "device": self.engine.device, "last_error": self.last_frame_error,
                 "warning": self.engine.device_warning,
                 "extra": {"pending_frames": len(self.assembler.pending()), "incomplete_axis_sets": self.assembler.failed,

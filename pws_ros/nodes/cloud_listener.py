@@ -47,7 +47,7 @@ class CloudListenerNode:
 
     def _counters(self) -> dict[str, Any]:
         w = self.worker
-        return {"rate_hz": w.rate.rate(), "frames_in": self.frontend.assembler.frames, "frames_processed": self.published,
+        return {"activity": "converted", "rate_hz": w.rate.rate(), "frames_in": self.frontend.assembler.frames, "frames_processed": self.published,
                 "frames_dropped": w.slot.dropped + self.frontend.dropped, "device": "cpu", "last_error": "",
                 "warning": w.last_error, "extra": {"input_messages": self.frontend.received}}
 

@@ -1,8 +1,10 @@
 """``partition_planner``: plans, per input frame, the camera poses of every configured axis.
 
 Subscribes (reliable): ``cloud`` (PointCloud2) + ``cloud/camera_info`` from ``cloud_listener``,
-paired by exact stamp. Publishes (reliable): ``plan`` (std_msgs/String JSON plan bundle: for each
-axis its partition grid, or why it could not be planned; see :mod:`pws_ros.bridge.scheme`) and
+paired by exact stamp. Publishes (reliable), per planned frame: ``plan/cloud`` (the cloud that was
+planned, as received, for the projector: the camera outruns planning, so the projector must not have
+to find it among newer clouds), ``plan`` (std_msgs/String JSON plan bundle: for each axis its
+partition grid, or why it could not be planned; see :mod:`pws_ros.bridge.scheme`) and
 ``plan/poses/<axis>`` (PoseArray of the camera poses in the source optical frame, source stamp,
 partition order). Plans are made for the render camera (the model's input size). Method ``pws``
 plans on the dense cloud of ``dense_cloud_path``.
@@ -32,6 +34,7 @@ class PartitionPlannerNode:
             self.engine.dense_cloud  # noqa: B018
         self.matcher = StampMatcher(("cloud", "info"), tolerance_ns=0, queue_size=cfg.sync_queue_size)
         self.pub_plan = ctx.publisher(T.String, "plan")
+        self.pub_cloud = ctx.publisher(T.PointCloud2, "plan/cloud")
         self.pub_poses: dict[str, Any] = {}
         self.planned = 0
         self.worker = Worker("pws-planner", self._process, ctx.log)
@@ -61,6 +64,8 @@ class PartitionPlannerNode:
         if cfg.publish_poses:
             for axis, plan in bundle.plans.items():
                 self._poses_pub(axis).publish(msgbuild.plan_to_pose_array(cloud_msg.header, plan, T))
+        if bundle.plans:  # the projector renders from this very cloud
+            self.pub_cloud.publish(cloud_msg)
         self.pub_plan.publish(scheme.plan_bundle_message(bundle, T))
         for axis, reason in bundle.errors.items():
             self.ctx.log("warn", f"frame {matched.stamp_ns} axis {axis}: cannot plan: {reason}")
@@ -68,7 +73,7 @@ class PartitionPlannerNode:
 
     def _counters(self) -> dict[str, Any]:
         w = self.worker
-        return {"rate_hz": w.rate.rate(), "frames_in": self.matcher.matched, "frames_processed": self.planned,
+        return {"activity": "planned", "rate_hz": w.rate.rate(), "frames_in": self.matcher.matched, "frames_processed": self.planned,
                 "frames_dropped": w.slot.dropped + self.matcher.total_dropped(), "device": self.engine.device,
                 "last_error": "", "warning": w.last_error}
 

@@ -100,6 +100,7 @@ class PipelineNode:
     def _counters(self) -> dict[str, Any]:
         w = self.worker
         return {
+            "activity": "certified",
             "rate_hz": w.rate.rate(),
             "frames_in": self.frontend.assembler.frames,
             "frames_processed": w.processed,

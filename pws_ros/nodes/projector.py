@@ -1,7 +1,7 @@
 """``projector``: renders one frame per planned pose and the per-segment bounds the core reports.
 
-Subscribes (reliable): ``cloud`` (PointCloud2 from ``cloud_listener``; the last few are kept by stamp)
-and ``plan`` (plan bundles from ``partition_planner``). For the newest plan bundle (older ones not yet
+Subscribes (reliable): ``plan/cloud`` (PointCloud2: the cloud of each planned frame, handed on by
+``partition_planner``; the last few are kept by stamp) and ``plan`` (plan bundles). For the newest plan bundle (older ones not yet
 started are dropped and counted) it renders every axis and publishes, in this order per axis,
 ``rendered/frames`` (Image 32FC3, ``header.frame_id = "<stamp_ns>/<axis>/<index>/<count>"``, reliable,
 history ``frames_qos_depth``) and ``rendered/bounds`` (Float64MultiArray), or ``rendered/errors`` when
@@ -45,7 +45,7 @@ class ProjectorNode:
         self.pub_preview = ctx.publisher(T.Image, "rendered/preview")
         self.worker = Worker("pws-projector", self._process, ctx.log)
         self.subs = [
-            ctx.subscription(T.PointCloud2, "cloud", self._on_cloud, kind=cfg.output_qos, depth=cfg.output_qos_depth),
+            ctx.subscription(T.PointCloud2, "plan/cloud", self._on_cloud, kind=cfg.output_qos, depth=cfg.output_qos_depth),
             ctx.subscription(T.String, "plan", self._on_plan, kind=cfg.output_qos, depth=cfg.output_qos_depth),
         ]
         self.health = HealthPublisher(ctx, self._counters)
@@ -101,7 +101,7 @@ class ProjectorNode:
 
     def _counters(self) -> dict[str, Any]:
         w = self.worker
-        return {"rate_hz": w.rate.rate(), "frames_in": w.slot.accepted, "frames_processed": self.rendered_sets,
+        return {"activity": "rendered", "rate_hz": w.rate.rate(), "frames_in": w.slot.accepted, "frames_processed": self.rendered_sets,
                 "frames_dropped": w.slot.dropped, "device": self.engine.device, "last_error": "", "warning": w.last_error,
                 "extra": {"frames_published": self.frames_published}}
 
