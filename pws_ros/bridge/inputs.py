@@ -18,7 +18,7 @@ from typing import Any
 
 from ..core.camera import CameraIntrinsics
 from ..core.cloud import Cloud
-from ..core.errors import PwsError, require
+from ..core.errors import require
 from . import msgconv
 from .config import PwsConfig, resolve_path
 from .sync import StampMatcher
