@@ -80,7 +80,10 @@ class Worker:
             finally:
                 self.busy = False
 
-    def close(self, timeout: float = 5.0) -> None:
+    def close(self, timeout: float = 2.0) -> None:
+        """Ask the thread to stop and wait up to ``timeout`` s. ``ros2 launch`` escalates to SIGTERM 5 s
+        after SIGINT, so this stays short: a computation that does not see ``stopping`` in time (a
+        plan on a huge cloud) is abandoned with the daemon thread when the process exits."""
         self._stop.set()
         self.slot.close()
         self.thread.join(timeout)
