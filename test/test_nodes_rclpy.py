@@ -202,3 +202,35 @@ def test_health_goes_on_when_sim_time_stops(ros, make_model_file):
         ex.shutdown()
         listener.destroy_node()
         node.destroy_node()
+
+
+def test_incompatible_qos_is_logged_and_counted(ros, make_model_file):
+    """A best-effort camera against a node told to subscribe reliably: no message can flow, and the
+    node says so (warning + qos_incompatible_events) instead of waiting silently."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    from pws_ros.nodes._ros import NodeContext, qos, rclpy_types
+    from pws_ros.nodes.pipeline import PipelineNode
+
+    params = parameters(make_model_file(input_size=(24, 32))) + [Parameter("input_qos", value="reliable")]
+    node = Node("pipeline", parameter_overrides=params)
+    ctx = NodeContext(node, "pipeline")
+    logic = PipelineNode(ctx)
+    camera = Node("best_effort_camera")
+    pub = camera.create_publisher(rclpy_types().Image, "/cam/color", qos("best_effort", 5))
+    ex = SingleThreadedExecutor()
+    ex.add_node(node)
+    ex.add_node(camera)
+    try:
+        end = time.monotonic() + 10.0
+        while time.monotonic() < end and ctx.qos_events == 0:
+            ex.spin_once(timeout_sec=0.1)
+        assert ctx.qos_events >= 1
+        assert pub.get_subscription_count() == 0  # not matched: nothing would ever arrive
+    finally:
+        logic.close()
+        ex.shutdown()
+        camera.destroy_node()
+        node.destroy_node()
