@@ -37,7 +37,7 @@ from typing import Any, Callable
 
 from .bagio import BagMessage, BagReader, BagWriter, prepare_output
 from .bridge import msgbuild, msgconv
-from .bridge.config import PwsConfig
+from .bridge.config import PwsConfig, depth_info_topic
 from .bridge.inputs import InputAssembler, RawFrame, convert
 from .core.errors import PwsError, require
 from .core.motion import UNITS
@@ -214,7 +214,7 @@ def discover_inputs(bag: BagReader, config: PwsConfig, overrides: dict[str, str]
         chosen[role] = _resolve_topic(bag, name, types[role], flags[role])
     notes: list[str] = []
     for role, name in (("cloud", config.points_topic), ("depth", config.depth_topic), ("color", config.color_topic),
-                       ("info", config.camera_info_topic), ("depth_info", config.depth_camera_info_topic)):
+                       ("info", config.camera_info_topic), ("depth_info", depth_info_topic(config))):
         if role not in chosen:
             t = _config_topic(bag, name, types[role])
             if t:

@@ -167,3 +167,14 @@ def test_docs_ros2_is_in_sync_with_the_table_and_schema():
     for topic in ("certification", "certification/markers", "plan/poses/<axis>", "rendered/frames", "rendered/bounds",
                   "rendered/errors", "rendered/preview", "/diagnostics"):
         assert f"`{topic}`" in text
+
+
+def test_depth_info_topic_follows_the_image_transport_convention():
+    cfg = C.PwsConfig()
+    assert cfg.depth_camera_info_topic == "auto"
+    assert C.depth_info_topic(cfg) == "/camera/aligned_depth_to_color/camera_info"
+    assert C.depth_info_topic(cfg.with_params({"depth_topic": "depth/image_rect_raw"})) == "depth/camera_info"
+    assert C.depth_info_topic(cfg.with_params({"depth_topic": "image_raw"})) == "camera_info"
+    assert C.depth_info_topic(cfg.with_params({"depth_topic": "/image_raw"})) == "/camera_info"
+    assert C.depth_info_topic(cfg.with_params({"depth_camera_info_topic": "/d/info"})) == "/d/info"
+    assert C.depth_info_topic(cfg.with_params({"depth_camera_info_topic": ""})) == ""

@@ -382,3 +382,21 @@ def test_four_processes_keep_up_with_a_fast_camera(model_path):
         for nd in nodes:
             nd.close()
         bus.close()
+
+
+def test_unregistered_depth_is_refused_by_default(bus, model_path):
+    """depth_camera_info_topic defaults to auto: the camera_info beside depth_topic. A depth camera
+    that is not the colour camera (same size, other intrinsics: raw RealSense depth) is refused."""
+    from pws_ros.nodes.pipeline import PipelineNode
+
+    ctx = Context(bus, "pipeline", **params(model_path))
+    node = PipelineNode(ctx)
+    try:
+        assert bus.subs["/cam/camera_info"]  # subscribed: beside /cam/depth
+        other = CameraIntrinsics(32, 24, 20.0, 20.0, 16.0, 12.0, "cam")
+        bus.publish("/cam/camera_info", msgbuild.camera_info_from_intrinsics(msgbuild.make_header(T, T0, "cam"), other, T))
+        play(bus, [T0], lambda: bus.published["/certification"])
+        parsed = msgbuild.parse_certification(bus.published["/certification"][0])
+        assert all(v["level"] == 2 and "not registered" in v["message"] for v in parsed.values())
+    finally:
+        node.close()

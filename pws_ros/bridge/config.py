@@ -130,8 +130,9 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("color_topic", "/camera/color/image_raw", "colour Image (rgb8, bgr8, rgba8, bgra8, mono8)", read_only=True, nodes=_IN),
     ParamSpec("camera_info_topic", "/camera/color/camera_info", "CameraInfo of the colour camera (also used with an organized or unorganized PointCloud2)",
               read_only=True, nodes=_IN),
-    ParamSpec("depth_camera_info_topic", "", "optional CameraInfo of the depth stream: if set, depth whose intrinsics differ from colour is refused",
-              read_only=True, nodes=_IN),
+    ParamSpec("depth_camera_info_topic", "auto", "CameraInfo of the depth stream: depth whose intrinsics differ from the colour camera's "
+              "is refused (not registered); auto = the camera_info beside depth_topic (e.g. /camera/aligned_depth_to_color/camera_info), "
+              "empty = no such check", read_only=True, nodes=_IN),
     ParamSpec("camera_info_file", "", "camera_calibration YAML used when no CameraInfo arrives (unorganized clouds)", read_only=True, nodes=_IN),
     ParamSpec("camera_info_sync", "latest", "CameraInfo pairing: latest (last one received) or stamp (matched like the images)",
               choices=INFO_SYNC, read_only=True, nodes=_IN),
@@ -202,7 +203,7 @@ class PwsConfig:
     depth_topic: str = "/camera/aligned_depth_to_color/image_raw"
     color_topic: str = "/camera/color/image_raw"
     camera_info_topic: str = "/camera/color/camera_info"
-    depth_camera_info_topic: str = ""
+    depth_camera_info_topic: str = "auto"
     camera_info_file: str = ""
     camera_info_sync: str = "latest"
     sync_tolerance_s: float = 0.02
@@ -419,6 +420,16 @@ def package_share_dirs() -> list[Path]:
     return dirs
 
 
+def depth_info_topic(config: PwsConfig) -> str:
+    """The depth stream's CameraInfo topic: ``depth_camera_info_topic``, where ``auto`` names the
+    ``camera_info`` beside ``depth_topic`` (the image_transport convention), and "" means none."""
+    name = config.depth_camera_info_topic
+    if name != "auto":
+        return name
+    base, _, _ = config.depth_topic.rpartition("/")
+    return f"{base}/camera_info" if base or config.depth_topic.startswith("/") else "camera_info"
+
+
 def resolve_path(path: str | Path, what: str = "file") -> Path:
     """An existing file: absolute, relative to the current directory, or to a package share directory.
 
@@ -529,4 +540,4 @@ _check_table()
 
 __all__ = ["COVERAGES", "DEMO_MODEL", "INPUT_MODES", "METHODS", "NODES", "PARAMS", "ParamSpec", "PwsConfig", "QOS_PROFILES",
            "SPECS", "check_consistency", "config_from_params", "default_config_path", "flatten", "load_config",
-           "params_from_yaml_dict", "render_params_markdown", "render_params_yaml", "resolve_path", "spec_table", "validate_param", "validate_params"]
+           "params_from_yaml_dict", "depth_info_topic", "render_params_markdown", "render_params_yaml", "resolve_path", "spec_table", "validate_param", "validate_params"]

@@ -10,6 +10,7 @@ import traceback
 from typing import Any, Callable
 
 from ..bridge import msgbuild
+from ..bridge.config import depth_info_topic
 from ..bridge.inputs import InputAssembler, RawFrame
 from ..bridge.sync import LatestSlot, RateMeter
 from ..core.errors import PwsError
@@ -147,11 +148,12 @@ class InputFrontend:
             self.subs.append(ctx.subscription(T.Image, cfg.color_topic, self._wrap(self.assembler.on_color)))
         # CameraInfo is needed by both modes (optional for organized clouds)
         self.subs.append(ctx.subscription(T.CameraInfo, cfg.camera_info_topic, self._wrap(self.assembler.on_info)))
-        if cfg.depth_camera_info_topic:
-            self.subs.append(ctx.subscription(T.CameraInfo, cfg.depth_camera_info_topic, self._wrap(self.assembler.on_depth_info)))
+        dinfo = depth_info_topic(cfg) if mode in ("auto", "rgbd") else ""
+        if dinfo:  # refuses depth whose camera is not the colour camera's (not registered)
+            self.subs.append(ctx.subscription(T.CameraInfo, dinfo, self._wrap(self.assembler.on_depth_info)))
         topics = ([cfg.points_topic] if mode != "rgbd" else []) + ([cfg.depth_topic, cfg.color_topic] if mode != "pointcloud2" else [])
         ctx.log("info", f"input mode {mode}: listening on {', '.join(ctx.resolve(t) for t in topics)} "
-                        f"+ {ctx.resolve(cfg.camera_info_topic)}")
+                        f"+ {ctx.resolve(cfg.camera_info_topic)}" + (f" (depth camera info {ctx.resolve(dinfo)})" if dinfo else ""))
 
     def _wrap(self, handler: Callable[[Any], RawFrame | None]) -> Callable[[Any], None]:
         def cb(msg: Any) -> None:
