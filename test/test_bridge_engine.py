@@ -199,3 +199,19 @@ def test_render_camera_helper(small_camera):
     assert render_camera(small_camera, None) is small_camera
     assert render_camera(small_camera, (24, 32)) is small_camera
     assert render_camera(small_camera, (12, 16)) == small_camera.scaled(16, 12)
+
+
+def test_sigma_unlike_the_training_sigma_is_warned_once_per_value(make_model_file, small_camera):
+    path = make_model_file(input_size=(24, 32), meta={"sigma": 0.5})
+    eng, logs = make_engine(path, sigma=0.25)
+    cloud = scene(small_camera)
+    eng.process(cloud, small_camera, 1)
+    eng.process(cloud, small_camera, 2)
+    warned = [m for lv, m in logs if lv == "warn" and "trained with" in m]
+    assert len(warned) == 1 and "sigma 0.25 differs from the noise sigma 0.5" in warned[0]
+    eng.config = eng.config.with_params({"sigma": 0.5})  # as after `ros2 param set`
+    eng.process(cloud, small_camera, 3)
+    assert len([m for lv, m in logs if lv == "warn" and "trained with" in m]) == 1
+    plain, plain_logs = make_engine(make_model_file(input_size=(24, 32), name="plain.pt"), sigma=0.25)  # no metadata
+    plain.process(cloud, small_camera, 1)
+    assert not [m for lv, m in plain_logs if "trained with" in m]

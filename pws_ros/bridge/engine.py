@@ -13,6 +13,7 @@ one bad axis or frame never stops a node.
 """
 from __future__ import annotations
 
+import math
 import threading
 import time
 import traceback
@@ -107,6 +108,7 @@ class FrameCertifier:
         self._dense = dense_cloud
         self._lock = threading.Lock()
         self._aspect_warned = False
+        self._sigma_checked: float | None = None
         if load:
             self.model  # noqa: B018 - load now
             self.denoiser  # noqa: B018
@@ -166,7 +168,21 @@ class FrameCertifier:
     def certify_config(self):
         from dataclasses import replace
 
+        self._check_sigma()
         return replace(self.config.certify_config(), device=self.device)
+
+    def _check_sigma(self) -> None:
+        """Warn (once per value) when the pixel noise sigma differs from the sigma the model's
+        metadata says it was trained with: still sound, but p_A and the radii will likely suffer."""
+        sigma = float(self.config.sigma)
+        if self.config.method == "cms" or sigma == self._sigma_checked:
+            return
+        self._sigma_checked = sigma
+        trained = (getattr(self.model, "meta", None) or {}).get("sigma")
+        if isinstance(trained, (int, float)) and not math.isclose(float(trained), sigma, rel_tol=1e-6):
+            self.log("warn", f"sigma {sigma:g} differs from the noise sigma {float(trained):g} the model was trained with "
+                             f"({self.config.model_path}): certificates stay sound, but expect a smaller p_A and radius "
+                             f"or abstentions")
 
     # ---- helpers ----
     def error_for(self, axis: str, reason: str, **kw: Any) -> Certificate:
