@@ -142,17 +142,16 @@ class InputAssembler:
         if got is None:
             return None
         msgs = dict(got.messages)
-        if "info" not in msgs:
-            if self.latest_info is None:
-                # CameraInfo often starts a little after the images: hold the newest pair for it
-                if self._held is not None:
-                    self.held_replaced += 1
-                self._held = msgs
-                return None
-            msgs["info"] = self.latest_info
+        if "info" not in msgs and self.latest_info is None:
+            # CameraInfo often starts a little after the images: hold the newest pair for it
+            if self._held is not None:
+                self.held_replaced += 1
+            self._held = msgs
+            return None
         return self._rgbd_frame(msgs)
 
     def _rgbd_frame(self, msgs: dict[str, Any]) -> RawFrame | None:
+        """The frame of a matched pair; its CameraInfo is the stamp-matched one or the latest."""
         msgs.setdefault("info", self.latest_info)
         if self.latest_depth_info is not None:
             msgs["depth_info"] = self.latest_depth_info
