@@ -31,13 +31,15 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
-@pytest.fixture
-def shared_data() -> Path:
-    """The shared data folder; skips the test when it is absent."""
-    path = shared_data_dir()
-    if not path.is_dir():
-        pytest.skip(f"shared data folder {path} is absent (set PWS_SHARED_DATA to use another)")
-    return path
+def shared_path(*parts: str) -> Path:
+    """A path in the shared data folder; skips the calling test when the folder or the path is absent."""
+    root = shared_data_dir()
+    if not root.is_dir():
+        pytest.skip(f"shared data folder {root} is absent (set PWS_SHARED_DATA to use another)")
+    p = root.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f"{p} is absent from the shared data")
+    return p
 
 
 @pytest.fixture

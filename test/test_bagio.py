@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import shared_data_dir
+from conftest import shared_path
 from pws_ros.bagio import BagReader, BagWriter, mcap_decoded_messages, prepare_output
 from pws_ros.core.errors import PwsError
 
@@ -283,15 +283,6 @@ def test_prepare_output_never_deletes_what_is_not_a_bag(tmp_path):
 
 # ---- real recordings made by other people's software ------------------------------------------
 
-def _shared(*parts) -> Path:
-    root = shared_data_dir()
-    if not root.is_dir():
-        pytest.skip(f"shared data folder {root} is absent (set PWS_SHARED_DATA to use another)")
-    p = root.joinpath(*parts)
-    if not p.exists():
-        pytest.skip(f"{p} is absent from the shared data")
-    return p
-
 
 @pytest.mark.parametrize("path", [
     ("rosbag2_written", "rosbag2_py_test_resources_mcap_talker"),
@@ -302,7 +293,7 @@ def _shared(*parts) -> Path:
 def test_real_talker_bags(path):
     """rosbag2's own talker bags: rosbags' Reader.messages() yields nothing for them (QoS text differs
     between metadata.yaml and the file); the sqlite3 one stores a wrong definition of rcl_interfaces/Log."""
-    got, warnings, bag = read_all(_shared(*path))
+    got, warnings, bag = read_all(shared_path(*path))
     topic = [m.data for t, _lt, m in got if t == "/topic"]
     assert topic == [f"Hello, world! {i}" for i in range(10)]
     assert len(got) == 20
@@ -311,7 +302,7 @@ def test_real_talker_bags(path):
 
 
 def test_real_split_bag_is_read_in_order():
-    got, warnings, bag = read_all(_shared("rosbag2_written", "rosbag2_py_test_resources_mcap_wbag"))
+    got, warnings, bag = read_all(shared_path("rosbag2_written", "rosbag2_py_test_resources_mcap_wbag"))
     assert len(bag.files) == 5 and len(got) == 6074 == bag.message_count
     times = [lt for _t, lt, _m in got]
     assert times == sorted(times)
@@ -320,7 +311,7 @@ def test_real_split_bag_is_read_in_order():
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
 def test_real_cdr_test_bag_with_test_msgs(storage):
-    got, warnings, bag = read_all(_shared("rosbag2_written", f"rosbag2_tests_resources_{storage}_cdr_test"))
+    got, warnings, bag = read_all(shared_path("rosbag2_written", f"rosbag2_tests_resources_{storage}_cdr_test"))
     assert warnings == [] and len(got) == 7
     basic = [m for t, _lt, m in got if t == "/test_topic"]
     arrays = [m for t, _lt, m in got if t == "/array_topic"]
@@ -334,7 +325,7 @@ def test_real_cdr_test_bag_with_test_msgs(storage):
 def test_real_bag_with_service_events():
     from rosbags.highlevel import AnyReader
 
-    path = _shared("rosbag2_written", "rosbag2_tests_resources_mcap_bag_with_topics_and_service_events")
+    path = shared_path("rosbag2_written", "rosbag2_tests_resources_mcap_bag_with_topics_and_service_events")
     with pytest.raises(Exception, match="Could not parse"):
         with AnyReader([path]):
             pass
@@ -352,10 +343,10 @@ def read_all_decodable(path):
 
 
 def test_real_kinect_cloud_and_realsense_images_decode():
-    with BagReader(_shared("kinect_organized_cloud")) as bag:
+    with BagReader(shared_path("kinect_organized_cloud")) as bag:
         (m,) = list(bag.messages())
         pc = bag.deserialize(m)
         assert (pc.height, pc.width, pc.point_step) == (480, 640, 32)
-    with BagReader(_shared("realsense_single_rgbd")) as bag:
+    with BagReader(shared_path("realsense_single_rgbd")) as bag:
         enc = {bag.deserialize(m).encoding for m in bag.messages(bag.topics_of_type("sensor_msgs/msg/Image"))}
         assert enc == {"mono16", "rgb8"}

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import shared_path
 from pws_ros.bridge import msgbuild, msgconv
 from pws_ros.core.errors import PwsError
 
@@ -22,19 +23,13 @@ def read_all(folder: Path) -> dict[str, list]:
 
 
 @pytest.fixture
-def kinect(shared_data):
-    folder = shared_data / "kinect_organized_cloud"
-    if not folder.is_dir():
-        pytest.skip(f"{folder} is absent")
-    return read_all(folder)["/camera/depth_registered/points"][0]
+def kinect():
+    return read_all(shared_path("kinect_organized_cloud"))["/camera/depth_registered/points"][0]
 
 
 @pytest.fixture
-def realsense(shared_data):
-    folder = shared_data / "realsense_single_rgbd"
-    if not folder.is_dir():
-        pytest.skip(f"{folder} is absent")
-    return read_all(folder)
+def realsense():
+    return read_all(shared_path("realsense_single_rgbd"))
 
 
 def test_kinect_organized_cloud(kinect):

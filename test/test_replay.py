@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import LinearNet, shared_data_dir
+from conftest import LinearNet, shared_path
 from pws_ros.bagio import BagReader, mcap_decoded_messages
 from pws_ros.bridge import msgbuild, msgconv
 from pws_ros.bridge.msgbuild import DIAGNOSTIC_KEYS, parse_certification
@@ -535,18 +535,9 @@ def test_help_explains_everything(capsys):
 
 # ---- real recordings -------------------------------------------------------------------------------
 
-def _shared(*parts) -> Path:
-    root = shared_data_dir()
-    if not root.is_dir():
-        pytest.skip(f"shared data folder {root} is absent (set PWS_SHARED_DATA to use another)")
-    p = root.joinpath(*parts)
-    if not p.exists():
-        pytest.skip(f"{p} is absent from the shared data")
-    return p
-
 
 def test_real_realsense_unregistered_depth_is_refused_clearly(models, tmp_path, capsys):
-    rc, _o, err = run_cli([_shared("realsense_single_rgbd"), "--out", tmp_path / "o", "--model", models["linear"], *TINY], capsys)
+    rc, _o, err = run_cli([shared_path("realsense_single_rgbd"), "--out", tmp_path / "o", "--model", models["linear"], *TINY], capsys)
     assert rc == 2
     last = err.strip().splitlines()[-1]
     assert "nothing could be certified" in last and "not registered" in last and "aligned" in last
@@ -555,7 +546,7 @@ def test_real_realsense_unregistered_depth_is_refused_clearly(models, tmp_path, 
 
 def test_real_kinect_organized_cloud_is_certified(models, tmp_path, capsys):
     out = tmp_path / "o"
-    rc, stdout, err = run_cli([_shared("kinect_organized_cloud"), "--out", out, "--model", models["linear"], "--axes", "tz",
+    rc, stdout, err = run_cli([shared_path("kinect_organized_cloud"), "--out", out, "--model", models["linear"], "--axes", "tz",
                                "--radius", "tz=0.1mm", "--n0", "8", "--n", "16", "--quiet"], capsys)
     assert rc == 0, err
     ((lt, stamp, payload),) = certifications(out)
@@ -569,7 +560,7 @@ def test_real_kinect_organized_cloud_is_certified(models, tmp_path, capsys):
                                  ("rosbag2_written", "rosbag2_py_test_resources_sqlite3_talker", "talker.db3"),
                                  ("rosbag2_written", "rosbag2_py_test_resources_mcap_wbag")])
 def test_real_bags_without_camera_data_name_the_problem(bag, models, tmp_path, capsys):
-    rc, _o, err = run_cli([_shared(*bag), "--out", tmp_path / "o", "--model", models["linear"], *TINY], capsys)
+    rc, _o, err = run_cli([shared_path(*bag), "--out", tmp_path / "o", "--model", models["linear"], *TINY], capsys)
     assert rc == 2
     last = err.strip().splitlines()[-1]
     assert "no camera input" in last and "the bag holds" in last
