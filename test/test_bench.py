@@ -222,7 +222,7 @@ def test_paper_rule_matches_core_paper_coverage(small_camera, tmp_path, sigma, n
     cloud = _scene(seed)
     plan = grid_plan("pws_of", "tz", radius, 9)
     rendered = render_plan(cloud, small_camera, plan)
-    cfg = CertifyConfig(sigma=sigma, n0=16, n=n, seed=seed, coverage="pairwise")
+    cfg = CertifyConfig(imaging="paper", sigma=sigma, n0=16, n=n, seed=seed, coverage="pairwise")
     pw = certify_rendered(rendered, model, cfg)
     paper = certify_rendered(rendered, model, replace(cfg, coverage="paper"))
     assert pw.p_a_lower == paper.p_a_lower  # same seed, same counts

@@ -33,7 +33,8 @@ def test_table_and_dataclass_agree():
 def test_demo_defaults():
     cfg = C.PwsConfig()
     assert cfg.axes == ("tz", "ry") and cfg.method == "pws_of" and cfg.coverage == "anchors"
-    assert cfg.min_partitions == 33
+    assert cfg.min_partitions == 0 and cfg.max_partitions == 257
+    assert (cfg.imaging, cfg.border, cfg.step_px) == ("surfel", -1, 0.25)
     assert cfg.radius_tz == 0.010 and cfg.radius_ry == pytest.approx(math.radians(0.25))
     assert (cfg.sigma, cfg.n0, cfg.n, cfg.alpha) == (0.5, 64, 256, 0.01)
     assert cfg.model_path == "bags/models/classifier_sigma0.50.pt"
@@ -83,7 +84,9 @@ def test_normalisation():
 def test_cross_parameter_rules():
     with pytest.raises(PwsError, match="method pws needs the entire scene cloud: set dense_cloud_path"):
         C.config_from_params({"method": "pws"})
-    assert C.config_from_params({"method": "pws", "dense_cloud_path": "scene.npz"}).method == "pws"
+    with pytest.raises(PwsError, match="set imaging: paper"):
+        C.config_from_params({"method": "pws", "dense_cloud_path": "scene.npz"})
+    assert C.config_from_params({"method": "pws", "dense_cloud_path": "scene.npz", "imaging": "paper"}).method == "pws"
     with pytest.raises(PwsError, match="render_width and render_height"):
         C.config_from_params({"render_width": 32})
     cfg = C.config_from_params({"use_sim_time": True, "qos_overrides./x.subscription.depth": 3})

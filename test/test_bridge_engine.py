@@ -51,19 +51,27 @@ def test_process_matches_core_certify(model_path, small_camera):
     assert res.stamp_ns == 123 and res.frame_id == "cam" and res.camera == small_camera
     assert set(res.plans) == {"tz", "ry"} and set(res.compute_ms) == {"tz", "ry"}
     model = load_model(model_path)
+    imaging = eng.imaging_for(small_camera, cloud)
     for c in res.certificates:
         assert c.status in ("certified", "not_certified") and c.label == 1 and c.class_name == "c1"
-        assert c.method == "pws_of" and c.coverage == "anchors" and c.n == 32 and c.n0 == 16
+        assert c.method == "pws_of" and c.coverage == "anchors" and c.n == 32 and c.n0 == 16 and c.imaging == "surfel"
         assert {"plan", "render", "inference", "statistics", "total"} <= set(c.timings)
-        ref = certify(cloud, small_camera, model, c.axis, eng.config.radius_for(c.axis), "pws_of", eng.certify_config())
+        # the frame's risk 0.01 is split over its two axes
+        assert c.frame_alpha == 0.01 and c.alpha == pytest.approx(0.005)
+        cfg = eng.certify_config(c.axis, 123)
+        assert cfg.seed == c.seed
+        ref = certify(cloud, small_camera, model, c.axis, eng.config.radius_for(c.axis), "pws_of", cfg, imaging=imaging)
         assert ref.p_a_lower == c.p_a_lower and ref.radius == c.radius and ref.status == c.status
+    tz, ry = res.certificates
+    assert tz.seed != ry.seed  # independent noise per axis ...
     again = eng.process(cloud, small_camera, 123)
-    assert [c.p_a_lower for c in again.certificates] == [c.p_a_lower for c in res.certificates]  # seeded
+    assert [c.p_a_lower for c in again.certificates] == [c.p_a_lower for c in res.certificates]  # ... seeded
+    assert [c.seed for c in eng.process(cloud, small_camera, 124).certificates] != [tz.seed, ry.seed]  # and per frame
 
 
-def test_camera_is_rescaled_to_the_model_input(model_path):
+def test_paper_imaging_rescales_the_camera_to_the_model_input(model_path):
     big = CameraIntrinsics(64, 48, 60.0, 60.0, 31.5, 23.5, "cam")
-    eng, logs = make_engine(model_path, axes=["tz"])
+    eng, logs = make_engine(model_path, axes=["tz"], imaging="paper")
     res = eng.process(scene(big), big, 1)
     assert res.camera == big.scaled(32, 24)
     assert res.certificates[0].status != "error", res.certificates[0].reason
@@ -73,6 +81,22 @@ def test_camera_is_rescaled_to_the_model_input(model_path):
     assert res.camera.shape == (24, 32) and any("aspect ratio changes" in m for _, m in logs)
 
 
+def test_surfel_imaging_crops_the_camera_to_a_multiple_of_the_model_input(model_path):
+    big = CameraIntrinsics(64, 48, 60.0, 60.0, 31.5, 23.5, "cam")
+    eng, logs = make_engine(model_path, axes=["tz"])
+    res = eng.process(scene(big), big, 1)
+    assert res.camera == big  # 64x48 is twice the model's 32x24: rendered at native resolution, no crop
+    assert res.certificates[0].status != "error", res.certificates[0].reason
+    assert res.certificates[0].bounds["imaging"]["factor"] == 2
+    wide = CameraIntrinsics(70, 36, 60.0, 60.0, 34.5, 17.5, "cam")
+    res = eng.process(scene(wide), wide, 2)  # a centred 32x24 crop (x0 = 19, y0 = 6), factor 1
+    assert (res.camera.width, res.camera.height, res.camera.cx, res.camera.cy) == (32, 24, 34.5 - 19, 17.5 - 6)
+    assert not any("aspect ratio changes" in m for _, m in logs)
+    small = CameraIntrinsics(16, 12, 20.0, 20.0, 7.5, 5.5, "cam")
+    (c,) = eng.process(scene(small), small, 3).certificates
+    assert c.status == "error" and "smaller than the classifier's input 32x24" in c.reason
+
+
 def test_render_size_override_and_mismatch_is_an_error_certificate(model_path, small_camera):
     eng, _ = make_engine(model_path, axes=["tz"], render_width=16, render_height=12)
     res = eng.process(scene(small_camera), small_camera, 1)
@@ -80,13 +104,27 @@ def test_render_size_override_and_mismatch_is_an_error_certificate(model_path, s
     assert c.status == "error" and "expects 32x24" in c.reason and "16x12" in c.reason
 
 
-def test_one_bad_axis_does_not_stop_the_others(model_path, small_camera):
-    eng, _ = make_engine(model_path, axes=["tx", "tz"], max_partitions=3, **{"radius.tx": 0.05})
+def test_one_bad_axis_does_not_stop_the_others(model_path, small_camera, monkeypatch):
+    eng, _ = make_engine(model_path, axes=["tx", "tz"], **{"radius.tx": 0.05, "radius.tz": 0.02})
+    plan_axis = eng.plan_axis
+
+    def failing(cloud, imaging, axis):
+        if axis == "tz":
+            raise PwsError("tz radius 0.02 m reaches the nearest point of the cloud")
+        return plan_axis(cloud, imaging, axis)
+
+    monkeypatch.setattr(eng, "plan_axis", failing)
     res = eng.process(scene(small_camera), small_camera, 1)
     tx, tz = res.certificates
-    assert tx.status == "error" and "more than max_partitions=3" in tx.reason and tx.requested_radius == 0.05
-    assert tx.sigma == 0.5 and tx.n == 32 and "tx" not in res.plans
-    assert tz.status != "error" and "tz" in res.plans
+    assert tz.status == "error" and "reaches the nearest point" in tz.reason and tz.requested_radius == 0.02
+    assert tz.sigma == 0.5 and tz.n == 32 and "tz" not in res.plans
+    assert tx.status != "error" and "tx" in res.plans
+
+
+def test_a_plan_above_max_partitions_is_coarser_not_refused(model_path, small_camera):
+    eng, _ = make_engine(model_path, axes=["tx"], max_partitions=3, **{"radius.tx": 0.05}, imaging="paper")
+    (c,) = eng.process(scene(small_camera), small_camera, 1).certificates
+    assert c.status != "error" and c.num_partitions == 3 and c.bounds["coarsened_from"] > 3
 
 
 def test_empty_cloud_gives_error_certificates(model_path, small_camera):
@@ -104,20 +142,23 @@ def test_unexpected_exceptions_are_contained(model_path, small_camera, monkeypat
     assert logs and logs[-1][0] == "error"
 
 
-def test_four_process_path_gives_the_same_certificate(model_path, small_camera):
+@pytest.mark.parametrize("imaging", ["surfel", "paper"])
+def test_four_process_path_gives_the_same_certificate(model_path, small_camera, imaging):
     """plan bundle -> render -> frames/bounds as messages (CDR) -> assembler -> certify_assembled
-    equals the pipeline's in-memory certify()."""
-    eng, _ = make_engine(model_path, axes=["tx", "tz"], **{"radius.tx": 0.05})
+    equals the pipeline's in-memory certify() (pairwise coverage: the adaptive anchors of the surfel
+    pipeline refine the plan with the model, which the planner node does not have)."""
+    eng, _ = make_engine(model_path, axes=["tx", "tz"], **{"radius.tx": 0.05}, imaging=imaging, coverage="pairwise")
     cloud = scene(small_camera)
     S = 1_700_000_000_000_000_000
     bundle = eng.plan_bundle(cloud, small_camera, S, "cam")
-    assert not bundle.errors and bundle.camera == small_camera
+    assert not bundle.errors and bundle.camera == small_camera and bundle.imaging.kind == imaging
     wire = scheme.parse_plan_bundle_message(T.typestore.deserialize_cdr(
         T.typestore.serialize_cdr(scheme.plan_bundle_message(bundle, T), "std_msgs/msg/String"), "std_msgs/msg/String"))
     asm = PartitionAssembler()
     asm.expect(S, wire.expected(), info=wire)
     for axis, plan in wire.plans.items():
-        rendered = eng.render_axis(cloud, wire.camera, plan)
+        assert wire.imaging == bundle.imaging
+        rendered = eng.render_axis(cloud, wire.imaging, plan)
         n = len(plan.alphas)
         for i in range(n):
             tag, frame = scheme.parse_frame_message(scheme.frame_message(S, axis, i, n, rendered.frames[i], T))
@@ -156,18 +197,18 @@ def test_pws_uses_the_dense_cloud(model_path, small_camera, tmp_path):
     dense = scene(small_camera, seed=1)
     path = tmp_path / "dense.npz"
     dense.save(path)
-    eng, logs = make_engine(model_path, axes=["tz"], method="pws", dense_cloud_path=str(path))
+    eng, logs = make_engine(model_path, axes=["tz"], method="pws", dense_cloud_path=str(path), imaging="paper")
     assert any("loaded dense cloud" in m for _, m in logs)
     one_frame = Cloud(np.array([[0.0, 0.0, 1.0]]), np.array([[0.0, 0.0, 0.0]]))
     (c,) = eng.process(one_frame, small_camera, 1).certificates
-    ref = certify(dense, small_camera, load_model(model_path), "tz", 0.01, "pws", eng.certify_config())
+    ref = certify(dense, small_camera, load_model(model_path), "tz", 0.01, "pws", eng.certify_config("tz", 1))
     assert c.method == "pws" and c.p_a_lower == ref.p_a_lower and c.label == ref.label
     with pytest.raises(PwsError, match="dense cloud file not found"):
-        make_engine(model_path, method="pws", dense_cloud_path=str(tmp_path / "none.npz"))
+        make_engine(model_path, method="pws", dense_cloud_path=str(tmp_path / "none.npz"), imaging="paper")
 
 
 def test_previews(model_path, small_camera):
-    eng, _ = make_engine(model_path, axes=["tx"], **{"radius.tx": 0.05})
+    eng, _ = make_engine(model_path, axes=["tx"], **{"radius.tx": 0.05}, imaging="paper")
     cloud = scene(small_camera)
     res = eng.process(cloud, small_camera, 1, preview_every=2)
     plan = res.plans["tx"]

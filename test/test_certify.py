@@ -144,7 +144,7 @@ def test_certificates_are_never_wrong(kind, axis, radius, step, coverage, model,
     cloud = scenes[kind]
     alphas = make_grid(radius, step)
     plan = Plan("pws", axis, radius, step, len(alphas), alphas)
-    config = CertifyConfig(sigma=SIGMA, n0=32, n=200, alpha=0.001, seed=len(alphas), coverage=coverage, batch_size=1000,
+    config = CertifyConfig(imaging="paper", sigma=SIGMA, n0=32, n=200, alpha=0.001, seed=len(alphas), coverage=coverage, batch_size=1000,
                            num_anchors=2 * len(alphas) // 3 + 1 if coverage == "anchors" else 9)
     cert = certify(cloud, CAM, model, axis, radius, "pws", config, plan=plan)
     assert cert.label == 1 and cert.class_name == "bright" and cert.coverage == coverage
@@ -166,7 +166,7 @@ def test_certified_range_stops_before_the_true_boundary(model, scenes):
     p = true_p(render(cloud, CAM, "tx", g), 1)
     boundary = np.abs(g[p <= 0.5]).min()
     assert 0.4 < boundary < 0.7
-    config = CertifyConfig(sigma=SIGMA, n0=32, n=200, alpha=0.001, seed=5, batch_size=1000)
+    config = CertifyConfig(imaging="paper", sigma=SIGMA, n0=32, n=200, alpha=0.001, seed=5, batch_size=1000)
     cert = certify(cloud, CAM, model, "tx", radius, "pws", config, plan=plan)
     assert cert.status == STATUS_NOT_CERTIFIED and not cert.certified
     assert 0 < cert.radius < boundary
@@ -177,7 +177,7 @@ def test_certified_range_stops_before_the_true_boundary(model, scenes):
 def test_planned_methods_are_never_wrong(method, model, scenes):
     cloud = scenes["one_frame"]
     radius = 0.08
-    config = CertifyConfig(sigma=SIGMA, n0=32, n=150, alpha=0.001, seed=11, batch_size=1000, max_partitions=400)
+    config = CertifyConfig(imaging="paper", sigma=SIGMA, n0=32, n=150, alpha=0.001, seed=11, batch_size=1000, max_partitions=400)
     plan = plan_partitions(cloud, CAM, "tx", radius, method, max_partitions=400)
     cert = certify(cloud, CAM, model, "tx", radius, method, config)
     assert cert.method == method and cert.num_partitions == plan.num_partitions
@@ -192,7 +192,7 @@ def test_determinism_and_bonferroni(model, scenes):
     plan = Plan("pws", "tx", 0.1, 0.02, len(alphas), alphas)
     outs = []
     for cov in COVERAGES:
-        cfg = CertifyConfig(sigma=SIGMA, n0=32, n=60, alpha=0.01, seed=7, coverage=cov, num_anchors=3, batch_size=77)
+        cfg = CertifyConfig(imaging="paper", sigma=SIGMA, n0=32, n=60, alpha=0.01, seed=7, coverage=cov, num_anchors=3, batch_size=77)
         a = certify(cloud, CAM, model, "tx", 0.1, "pws", cfg, plan=plan)
         b = certify(cloud, CAM, model, "tx", 0.1, "pws", cfg, plan=plan)
         da, db = a.to_dict(), b.to_dict()
@@ -205,7 +205,7 @@ def test_determinism_and_bonferroni(model, scenes):
         assert a.classifier_calls == 32 + expected_m * 60
         outs.append(a)
     c = certify(cloud, CAM, model, "tx", 0.1, "pws",
-                CertifyConfig(sigma=SIGMA, n0=32, n=60, alpha=0.01, seed=8, batch_size=77), plan=plan)
+                CertifyConfig(imaging="paper", sigma=SIGMA, n0=32, n=60, alpha=0.01, seed=8, batch_size=77), plan=plan)
     assert c.p_a_lower != outs[1].p_a_lower  # another seed, other noise
     # with all n votes for the label the lower bound is (alpha/m)^(1/n): Bonferroni at m partitions
     assert max(outs[1].p_a_lower) == pytest.approx((0.01 / len(alphas)) ** (1 / 60), rel=1e-9)
@@ -228,7 +228,7 @@ def test_abstains_on_a_coin_flip(tmp_path):
     alphas = make_grid(0.05, 0.025)
     plan = Plan("pws", "tx", 0.05, 0.025, len(alphas), alphas)
     for cov in COVERAGES:
-        cfg = CertifyConfig(sigma=0.5, n0=50, n=200, seed=3, background=0.5, coverage=cov)
+        cfg = CertifyConfig(imaging="paper", sigma=0.5, n0=50, n=200, seed=3, background=0.5, coverage=cov)
         cert = certify(cloud, CAM, model, "tx", 0.05, "pws", cfg, plan=plan)
         assert cert.status == STATUS_ABSTAIN and cert.radius == 0.0 and not cert.certified
         assert cert.reason
@@ -239,7 +239,7 @@ def test_certify_rendered_equals_certify(model, scenes):
     cloud = scenes["one_frame"]
     plan = plan_partitions(cloud, CAM, "tx", 0.05, "pws_of")
     for cov in COVERAGES:
-        cfg = CertifyConfig(sigma=SIGMA, n0=20, n=50, alpha=0.01, seed=4, coverage=cov, chunk=4, batch_size=100, num_anchors=4)
+        cfg = CertifyConfig(imaging="paper", sigma=SIGMA, n0=20, n=50, alpha=0.01, seed=4, coverage=cov, chunk=4, batch_size=100, num_anchors=4)
         direct = certify(cloud, CAM, model, "tx", 0.05, "pws_of", cfg, plan=plan)
         rendered = render_plan(cloud, CAM, plan, background=cfg.background)
         via = certify_rendered(rendered, model, cfg)
@@ -247,6 +247,7 @@ def test_certify_rendered_equals_certify(model, scenes):
         for k in ("timings",):
             a.pop(k), b.pop(k)
         a["bounds"].pop("lemma1_holds", None), b["bounds"].pop("lemma1_holds", None)
+        a["bounds"].pop("imaging")  # the direct path records its Imaging; a rendered plan carries none
         assert a == b
         assert direct.bounds["max_pair_bound_sq"] == pytest.approx(float(rendered.pair_bound_sq.max()))
     # an incomplete set of frames is refused
@@ -256,7 +257,7 @@ def test_certify_rendered_equals_certify(model, scenes):
 
 
 def test_cms_returns_a_certificate(model, scenes):
-    cert = certify(scenes["one_frame"], CAM, model, "tx", 0.01, "cms", CertifyConfig(n0=20, n=60, seed=0, cms_sigma=0.05))
+    cert = certify(scenes["one_frame"], CAM, model, "tx", 0.01, "cms", CertifyConfig(imaging="paper", n0=20, n=60, seed=0, cms_sigma=0.05))
     assert isinstance(cert, Certificate)
     assert cert.method == "cms" and cert.num_bounds == 1 and len(cert.p_a_lower) == 1
     assert cert.status in (STATUS_CERTIFIED, STATUS_NOT_CERTIFIED, STATUS_ABSTAIN)
@@ -264,14 +265,16 @@ def test_cms_returns_a_certificate(model, scenes):
 
 def test_certify_bad_input(model, scenes, tmp_path):
     cloud = scenes["one_frame"]
-    cfg = CertifyConfig(n0=10, n=10)
+    cfg = CertifyConfig(imaging="paper", n0=10, n=10)
     with pytest.raises(PwsError):
         certify(Cloud(np.zeros((0, 3)), np.zeros((0, 3))), CAM, model, "tx", 0.05, "pws_of", cfg)
     with pytest.raises(PwsError):
         certify(Cloud(np.array([[0.0, 0.0, -1.0]]), np.ones((1, 3))), CAM, model, "tx", 0.05, "pws_of", cfg)
-    other = load_model(save_model(LinearNet(2), tmp_path / "lin.pt", ["a", "b"], input_size=(24, 32)))
-    with pytest.raises(PwsError, match="expects"):
-        certify(cloud, CAM, other, "tx", 0.05, "pws_of", cfg)
+    # paper imaging rescales the camera to the model's input; surfel imaging needs a camera at least that big
+    big = load_model(save_model(LinearNet(2), tmp_path / "lin.pt", ["a", "b"], input_size=(2 * CAM.height, 2 * CAM.width)))
+    assert certify(cloud, CAM, big, "tx", 0.05, "pws_of", cfg).bounds["imaging"]["width"] == 2 * CAM.width
+    with pytest.raises(PwsError, match="smaller than the classifier's input"):
+        certify(cloud, CAM, big, "tx", 0.05, "pws_of", CertifyConfig(n0=10, n=10))
     for r in (0.0, -0.1, float("nan"), float("inf")):
         with pytest.raises(PwsError):
             certify(cloud, CAM, model, "tx", r, "pws_of", cfg)
@@ -281,7 +284,7 @@ def test_certify_bad_input(model, scenes, tmp_path):
         certify(cloud, CAM, model, "tx", 0.05, "pws_x", cfg)
     for bad in (dict(coverage="all"), dict(sigma=0.0), dict(n=0), dict(alpha=1.0), dict(num_anchors=0), dict(batch_size=0)):
         with pytest.raises(PwsError):
-            certify(cloud, CAM, model, "tx", 0.05, "pws_of", CertifyConfig(**{**dict(n0=10, n=10), **bad}))
+            certify(cloud, CAM, model, "tx", 0.05, "pws_of", CertifyConfig(imaging="paper", **{**dict(n0=10, n=10), **bad}))
     plan = plan_partitions(cloud, CAM, "tx", 0.05, "pws_of")
     with pytest.raises(PwsError):
         certify(cloud, CAM, model, "ty", 0.05, "pws_of", cfg, plan=plan)  # plan for another axis
@@ -292,7 +295,7 @@ def test_certify_bad_input(model, scenes, tmp_path):
 def test_coverage_at_an_exact_crossing_instant(model, scenes):
     cloud = scenes["one_frame"]
     radius = 0.08
-    config = CertifyConfig(sigma=SIGMA, n0=32, n=150, alpha=0.001, seed=11, batch_size=1000, max_partitions=400)
+    config = CertifyConfig(imaging="paper", sigma=SIGMA, n0=32, n=150, alpha=0.001, seed=11, batch_size=1000, max_partitions=400)
     plan = plan_partitions(cloud, CAM, "tx", radius, "pws", max_partitions=400)
     cert = certify(cloud, CAM, model, "tx", radius, "pws", config, plan=plan)
     assert cert.status == STATUS_CERTIFIED

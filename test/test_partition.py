@@ -60,10 +60,11 @@ def test_grid_ends_exactly_at_radius(radius):
     assert a[0] == -radius and a[-1] == radius
 
 
-def test_grid_cap_raises_instead_of_truncating():
+def test_grid_cap_makes_a_coarser_grid_never_a_truncated_one():
     assert len(make_grid(1.0, 0.01, max_partitions=201)) == 201
-    with pytest.raises(PwsError, match="max_partitions"):
-        make_grid(1.0, 0.01, max_partitions=200)
+    coarse = make_grid(1.0, 0.01, max_partitions=200)  # 199 frames over the whole [-1, 1], step 1/99
+    assert len(coarse) == 199 and coarse[0] == -1.0 and coarse[-1] == 1.0 and 0.0 in coarse
+    np.testing.assert_allclose(np.diff(coarse), 1 / 99, rtol=1e-12)
     with pytest.raises(PwsError):
         make_grid(1.0, 0.0)
     with pytest.raises(PwsError):
@@ -390,12 +391,13 @@ def test_plan_bad_cloud():
         plan_partitions(Cloud(np.array([[0.0, 0.0, -1.0]]), np.ones((1, 3))), CAM, "tx", 0.1, "pws")
 
 
-def test_plan_cap_is_an_error_not_a_truncation():
+def test_plan_cap_coarsens_the_plan_instead_of_refusing():
     cloud = one_frame_cloud(0)
     full = plan_partitions(cloud, CAM, "tx", 0.1, "pws")
     assert full.num_partitions > 5
-    with pytest.raises(PwsError, match="max_partitions"):
-        plan_partitions(cloud, CAM, "tx", 0.1, "pws", max_partitions=full.num_partitions - 2)
+    capped = plan_partitions(cloud, CAM, "tx", 0.1, "pws", max_partitions=full.num_partitions - 2)
+    assert capped.num_partitions == full.num_partitions - 2 and capped.details["coarsened_from"] == full.num_partitions
+    assert capped.alphas[0] == -0.1 and capped.alphas[-1] == 0.1 and 0.0 in capped.alphas
     same = plan_partitions(cloud, CAM, "tx", 0.1, "pws", max_partitions=full.num_partitions)
     np.testing.assert_array_equal(same.alphas, full.alphas)
 

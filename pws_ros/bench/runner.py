@@ -271,7 +271,8 @@ class Bench:
     def config(self, **kw) -> CertifyConfig:
         base = CertifyConfig(sigma=0.5, n0=self.s.n0, n=self.s.n, alpha=self.s.alpha, seed=self.s.seed, device=str(self.device),
                              batch_size=self.s.batch_size, coverage="pairwise", num_anchors=self.s.num_anchors,
-                             background=self.s.background, delta=self.s.delta_px)
+                             background=self.s.background, delta=self.s.delta_px, imaging="paper",
+                             max_partitions=20000)
         return replace(base, **kw)
 
     # -- run -----------------------------------------------------------------------------------

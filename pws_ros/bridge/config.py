@@ -33,6 +33,8 @@ from ..core.errors import PwsError, require
 from ..core.motion import AXES, PAPER_RADIUS, UNITS
 
 from ..core.certify import COVERAGES, METHODS  # the certification core owns these lists
+from ..core.imaging import IMAGING_KINDS
+from ..core.partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX
 
 INPUT_MODES = ("auto", "pointcloud2", "rgbd")
 QOS_PROFILES = ("sensor_data", "reliable", "best_effort", "system_default")
@@ -95,19 +97,28 @@ PARAMS: tuple[ParamSpec, ...] = (
     *(_radius_spec(a) for a in AXES),
     ParamSpec("method", "pws_of", "partitioning method: pws (needs dense_cloud_path), pws_l, pws_of (one-frame cloud), or the cms baseline",
               choices=METHODS, nodes=_PLAN),
-    ParamSpec("coverage", "anchors", "coverage rule: anchors (p_A at num_anchors frames only: the cost no longer grows with the plan), "
-              "pairwise (p_A at every partition, per segment), paper (max M < min R); ignored by cms",
+    ParamSpec("imaging", "surfel", "imaging model: surfel (each point is the patch its depth pixel saw, rendered at the camera's "
+              "resolution on a centred crop and block-averaged to the model's input; no sampling holes) or paper (one point "
+              "paints one pixel at the model's size, the paper's model)", choices=IMAGING_KINDS, nodes=_PLAN),
+    ParamSpec("border", -1, "surfel imaging: output pixels masked (set to background) along the left/right and top/bottom "
+              "edges in every frame and in the classifier's input; -1 = computed from the radii (what can enter from "
+              "beyond the recorded image)", range=(-1, 4096), nodes=_PLAN, unit="px"),
+    ParamSpec("step_px", float(DEFAULT_STEP_PX), "surfel imaging: the plan's step moves no point more than this many native "
+              "pixels (finer = tighter bounds, more frames)", range=(1e-3, 100.0), nodes=_PLAN, unit="px"),
+    ParamSpec("coverage", "anchors", "coverage rule: anchors (p_A at a few anchor frames only; with surfel imaging they are "
+              "placed from the distance bounds, at most num_anchors), pairwise (p_A at every partition, per segment), paper "
+              "(max M < min R); ignored by cms",
               choices=COVERAGES, nodes=_CERT),
     ParamSpec("delta", 0.0, "PwS-OF delta-convexity constant in pixels; 0 = the core's default", range=(0.0, 100.0), nodes=_PLAN, unit="px"),
-    ParamSpec("max_partitions", 20000, "largest number of partitions (frames) a plan may need; bigger plans are refused (ERROR status)",
-              range=(3, 1_000_000), nodes=_PLAN),
-    ParamSpec("min_partitions", 33, "refine each plan to at least this many partitions (still sound; tightens the bounds where the method "
+    ParamSpec("max_partitions", DEFAULT_FRAME_BUDGET, "most partitions (frames) per axis: a plan needing more is made coarser (fewer frames, "
+              "looser bounds, maybe a smaller certified radius), never refused", range=(3, 1_000_000), nodes=_PLAN),
+    ParamSpec("min_partitions", 0, "refine each plan to at least this many partitions (still sound; tightens the bounds where the method "
               "plans only a few frames, e.g. sub-pixel motions); 0 = as planned", range=(0, 1_000_000), nodes=_PLAN),
     ParamSpec("dense_cloud_path", "", "prior dense cloud (.npz with points, colors in the camera optical frame) for method pws; empty otherwise",
               read_only=True, nodes=_PLAN),
-    ParamSpec("background", 0.0, "pixel value of holes (pixels no point reaches) in rendered frames", range=(0.0, 1.0), nodes=_PLAN),
-    ParamSpec("render_width", 0, "rendered frame width; 0 = the model's declared input size (else the camera's)", range=(0, 8192), read_only=True, nodes=_PLAN, unit="px"),
-    ParamSpec("render_height", 0, "rendered frame height; 0 = the model's declared input size (else the camera's)", range=(0, 8192), read_only=True, nodes=_PLAN, unit="px"),
+    ParamSpec("background", 0.0, "pixel value where no point is drawn (invalid depth, disocclusions, the masked border)", range=(0.0, 1.0), nodes=_PLAN),
+    ParamSpec("render_width", 0, "paper imaging: rendered frame width; 0 = the model's declared input size (else the camera's)", range=(0, 8192), read_only=True, nodes=_PLAN, unit="px"),
+    ParamSpec("render_height", 0, "paper imaging: rendered frame height; 0 = the model's declared input size (else the camera's)", range=(0, 8192), read_only=True, nodes=_PLAN, unit="px"),
     # -- smoothing and statistics --
     ParamSpec("model_path", DEMO_MODEL, "TorchScript classifier (relative paths: current directory, then the package share directory)",
               read_only=True, nodes=_PLAN),
@@ -117,10 +128,13 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("sigma", 0.5, "pixel noise standard deviation of the smoothed classifier (images in [0, 1])", range=(1e-6, 10.0), nodes=_CERT),
     ParamSpec("n0", 64, "noise samples to select the top class (at the original pose)", range=(1, 10_000_000), nodes=_CERT),
     ParamSpec("n", 256, "noise samples per bound to estimate p_A", range=(1, 100_000_000), nodes=_CERT),
-    ParamSpec("alpha", 0.01, "total failure probability of the certificate (Bonferroni over every bound used)", range=(1e-12, 0.5), nodes=_CERT),
-    ParamSpec("seed", 0, "random seed (deterministic certificates for equal inputs)", range=(0, 2**31 - 1), nodes=_CERT),
+    ParamSpec("alpha", 0.01, "risk of a frame's certificate: the probability that any statement about the frame (all its axes "
+              "together) is wrong; split evenly over the axes, then over every bound each uses (Bonferroni)", range=(1e-12, 0.5), nodes=_CERT),
+    ParamSpec("seed", 0, "random seed; each frame and axis draws from its own stream derived from (seed, stamp, axis): "
+              "deterministic for equal inputs, independent across frames and axes", range=(0, 2**31 - 1), nodes=_CERT),
     ParamSpec("batch_size", 256, "images per classifier call", range=(1, 1_000_000), nodes=_CERT),
-    ParamSpec("num_anchors", 9, "anchor frames for coverage=anchors", range=(1, 100_000), nodes=_CERT),
+    ParamSpec("num_anchors", 9, "anchor frames for coverage=anchors (surfel imaging: the most anchors, i.e. a budget of "
+              "n0 + num_anchors * n classifier calls per axis; a frame needing more gets a smaller radius)", range=(1, 100_000), nodes=_CERT),
     ParamSpec("cms_sigma", 0.0, "motion-space sigma of the cms baseline; 0 = the per-axis default", range=(0.0, 10.0), nodes=_CERT),
     # -- inputs --
     ParamSpec("input_mode", "auto", "input: pointcloud2, rgbd (depth + colour + CameraInfo), or auto (the first that arrives)",
@@ -178,10 +192,13 @@ class PwsConfig:
     radius_ry: float = PAPER_RADIUS["ry"]
     radius_rz: float = PAPER_RADIUS["rz"]
     method: str = "pws_of"
+    imaging: str = "surfel"
+    border: int = -1
+    step_px: float = DEFAULT_STEP_PX
     coverage: str = "anchors"
     delta: float = 0.0
-    max_partitions: int = 20000
-    min_partitions: int = 33
+    max_partitions: int = DEFAULT_FRAME_BUDGET
+    min_partitions: int = 0
     dense_cloud_path: str = ""
     background: float = 0.0
     render_width: int = 0
@@ -250,7 +267,8 @@ class PwsConfig:
         return CertifyConfig(sigma=self.sigma, n0=self.n0, n=self.n, alpha=self.alpha, seed=self.seed, device=self.device,
                              batch_size=self.batch_size, coverage=self.coverage, num_anchors=self.num_anchors,
                              background=self.background, max_partitions=self.max_partitions,
-                             min_partitions=self.min_partitions,
+                             min_partitions=self.min_partitions, imaging=self.imaging, border=self.border,
+                             step_px=self.step_px,
                              delta=self.delta if self.delta > 0 else None,
                              cms_sigma=self.cms_sigma if self.cms_sigma > 0 else None)
 
@@ -319,6 +337,9 @@ def check_consistency(cfg: PwsConfig) -> None:
             "method pws needs the entire scene cloud: set dense_cloud_path (or use pws_of / pws_l with the one-frame cloud)")
     require((cfg.render_width == 0) == (cfg.render_height == 0),
             f"render_width and render_height must both be 0 or both set, got {cfg.render_width}x{cfg.render_height}")
+    require(not (cfg.method == "pws" and cfg.imaging == "surfel"),
+            "method pws plans on the entire scene cloud, which has no depth pixels to make surfels of: set imaging: paper "
+            "(or use pws_of / pws_l with the one-frame cloud)")
 
 
 def config_from_params(params: dict[str, Any] | None = None, *, check: bool = True, ignore_unknown: Iterable[str] = ("use_sim_time",)) -> PwsConfig:

@@ -4,9 +4,16 @@ Used by the ``pipeline`` node (everything in memory), by the four nodes of the f
 (each calls its own stage: :meth:`FrameCertifier.plan_bundle`, :meth:`FrameCertifier.render_axis`,
 :meth:`FrameCertifier.certify_assembled`), by ``pws replay`` and by the benchmarks.
 
-The cloud stays metric in the camera optical frame; only the camera changes: frames are rendered at
-the model's input size (or ``render_width x render_height``), the intrinsics rescaled with
-:meth:`CameraIntrinsics.scaled`. The model (and denoiser, and the dense cloud of method ``pws``) is
+The cloud stays metric in the camera optical frame; frames are made by the imaging model of
+:mod:`pws_ros.core.imaging` (``imaging``: ``surfel`` renders a centred crop of the camera at its native
+resolution and block-averages it to the model's input size; ``paper`` rescales the camera to the
+model's input size, or ``render_width x render_height``). One :class:`~pws_ros.core.imaging.Imaging`
+per frame serves every axis (its masked border is computed from all the frame's radii).
+
+Risk and noise: the frame's statement (every axis together) holds with probability at least
+``1 - alpha``: each of the ``A`` axes spends ``alpha / A`` (Bonferroni), recorded in each certificate as
+``alpha`` (per axis) and ``frame_alpha``; each axis draws its noise from its own seed derived from
+(seed, stamp, axis) (:func:`~pws_ros.core.smoothing.derive_seed`). The model (and denoiser, and the dense cloud of method ``pws``) is
 loaded once. A ``cuda:N`` device that is not available falls back to the CPU with a warning sent to
 ``log``. Any failure of one axis becomes an ERROR certificate for that axis (never an exception):
 one bad axis or frame never stops a node.
@@ -154,22 +161,44 @@ class FrameCertifier:
         size = getattr(self.model, "input_size", None)
         return (int(size[0]), int(size[1])) if size is not None else None
 
-    def render_camera(self, intr: CameraIntrinsics) -> CameraIntrinsics:
+    def imaging_for(self, intr: CameraIntrinsics, cloud: Cloud | None = None) -> Any:
+        """The :class:`~pws_ros.core.imaging.Imaging` of one frame (its border from all configured radii)."""
+        from ..core.imaging import make_imaging
+
+        c = self.config
         size = self.render_size
-        cam = render_camera(intr, size)
-        if size is not None and not self._aspect_warned:
+        if c.imaging == "paper" and size is not None and not self._aspect_warned:
             src, dst = intr.width / intr.height, size[1] / size[0]
             if abs(src - dst) > 0.01 * src:
                 self._aspect_warned = True
                 self.log("warn", f"camera {intr.width}x{intr.height} is rendered at {size[1]}x{size[0]}: the aspect ratio changes "
-                                 f"(fx and fy are scaled differently)")
-        return cam
+                                 f"(fx and fy are scaled differently; imaging: surfel crops instead)")
+        im = make_imaging(c.imaging, intr, size, background=c.background, border=c.border, cloud=cloud, radii=c.radii)
+        if im.kind == "surfel" and not self._aspect_warned:
+            self._aspect_warned = True
+            self.log("info", im.describe())
+        return im
 
-    def certify_config(self):
+    def render_camera(self, intr: CameraIntrinsics) -> CameraIntrinsics:
+        """The camera frames are rendered with (the native crop for surfel imaging)."""
+        return self.imaging_for(intr).camera
+
+    def certify_config(self, axis: str | None = None, stamp_ns: int = 0):
+        """The core's CertifyConfig; for an axis of a frame: ``alpha / len(axes)`` and the derived seed."""
         from dataclasses import replace
 
+        from ..core.smoothing import derive_seed
+
         self._check_sigma()
-        return replace(self.config.certify_config(), device=self.device)
+        cfg = replace(self.config.certify_config(), device=self.device)
+        if axis is not None:
+            cfg = replace(cfg, alpha=self.config.alpha / max(1, len(self.config.axes)),
+                          seed=derive_seed(self.config.seed, int(stamp_ns), axis))
+        return cfg
+
+    def _stamp(self, cert: Certificate) -> Certificate:
+        cert.frame_alpha = float(self.config.alpha)
+        return cert
 
     def _check_sigma(self) -> None:
         """Warn (once per value) when the pixel noise sigma differs from the sigma the model's
@@ -189,7 +218,8 @@ class FrameCertifier:
         """An ERROR certificate for ``axis`` carrying this config's settings."""
         c = self.config
         return error_certificate(axis, UNITS[axis], c.method, c.coverage, c.radius_for(axis), reason,
-                                 sigma=c.sigma, n0=c.n0, n=c.n, alpha=c.alpha, seed=c.seed, **kw)
+                                 sigma=c.sigma, n0=c.n0, n=c.n, alpha=c.alpha / max(1, len(c.axes)), seed=c.seed,
+                                 imaging=c.imaging, frame_alpha=c.alpha, **kw)
 
     def _guard(self, axis: str, fn: Callable[[], Certificate]) -> Certificate:
         try:
@@ -209,20 +239,29 @@ class FrameCertifier:
         return cloud
 
     # ---- stage 1: plan ----
-    def plan_axis(self, cloud: Cloud, cam: CameraIntrinsics, axis: str) -> Any:
-        from ..core.partition import plan_partitions
+    def plan_axis(self, cloud: Cloud, imaging: Any, axis: str) -> Any:
+        from ..core.partition import plan_partitions, plan_step
 
         c = self.config
         require(c.method != "cms", "method cms has no partition plan")
-        return plan_partitions(cloud, cam, axis, c.radius_for(axis), c.method,
+        if imaging.kind == "surfel":
+            return plan_step(cloud, imaging.camera, axis, c.radius_for(axis), c.method, step_px=c.step_px,
+                             max_partitions=c.max_partitions, min_partitions=c.min_partitions)
+        return plan_partitions(cloud, imaging.camera, axis, c.radius_for(axis), c.method,
                                delta=c.delta if c.delta > 0 else None, max_partitions=c.max_partitions,
                                min_partitions=c.min_partitions)
 
     def plan_bundle(self, cloud: Cloud, intr: CameraIntrinsics, stamp_ns: int, frame_id: str = "",
                     dense_cloud: Cloud | None = None) -> PlanBundle:
         """Every axis' plan for one frame (errors per axis are recorded, not raised)."""
-        cam = self.render_camera(intr)
-        bundle = PlanBundle(int(stamp_ns), frame_id or intr.frame_id, self.config.method, cam, list(self.config.axes))
+        try:
+            imaging = self.imaging_for(intr, cloud)
+        except PwsError as exc:
+            bundle = PlanBundle(int(stamp_ns), frame_id or intr.frame_id, self.config.method, intr, list(self.config.axes))
+            bundle.errors = {a: str(exc) for a in bundle.axes}
+            return bundle
+        bundle = PlanBundle(int(stamp_ns), frame_id or intr.frame_id, self.config.method, imaging.camera,
+                            list(self.config.axes), imaging=imaging)
         if self.config.method == "cms":
             for a in bundle.axes:
                 bundle.errors[a] = "method cms is only available in the pipeline node (it samples random poses inside the certifier)"
@@ -234,7 +273,7 @@ class FrameCertifier:
             return bundle
         for a in bundle.axes:
             try:
-                bundle.plans[a] = self.plan_axis(src, cam, a)
+                bundle.plans[a] = self.plan_axis(src, imaging, a)
             except PwsError as exc:
                 bundle.errors[a] = str(exc)
             except Exception as exc:
@@ -243,17 +282,24 @@ class FrameCertifier:
         return bundle
 
     # ---- stage 2: render ----
-    def render_axis(self, cloud: Cloud, cam: CameraIntrinsics, plan: Any, dense_cloud: Cloud | None = None) -> Any:
-        """The :class:`~pws_ros.core.bounds.RenderedPlan` of one plan (frames + per-segment bounds)."""
+    def render_axis(self, cloud: Cloud, imaging: Any, plan: Any, dense_cloud: Cloud | None = None) -> Any:
+        """The :class:`~pws_ros.core.bounds.RenderedPlan` of one plan (frames + per-segment bounds).
+        ``imaging``: the bundle's :class:`~pws_ros.core.imaging.Imaging` (a camera means paper imaging)."""
         from ..core.bounds import render_plan
+        from ..core.imaging import Imaging, render_plan_surfel
 
+        if isinstance(imaging, Imaging) and imaging.kind == "surfel":
+            return render_plan_surfel(self.source_cloud(cloud, dense_cloud), imaging, plan, device=self.device)
+        cam = imaging.camera if isinstance(imaging, Imaging) else imaging
         return render_plan(self.source_cloud(cloud, dense_cloud), cam, plan, background=self.config.background, device=self.device)
 
     # ---- stage 3: certify ----
-    def certify_rendered(self, rendered: Any) -> Certificate:
+    def certify_rendered(self, rendered: Any, stamp_ns: int = 0) -> Certificate:
         from ..core.certify import certify_rendered
 
-        return certify_rendered(rendered, self.model, self.certify_config(), denoiser=self.denoiser)
+        cert = certify_rendered(rendered, self.model, self.certify_config(rendered.plan.axis, stamp_ns), denoiser=self.denoiser)
+        cert.imaging = str(rendered.plan.details.get("imaging", self.config.imaging))
+        return self._stamp(cert)
 
     def certify_assembled(self, frame: AssembledFrame) -> FrameResult:
         """Certify what the four-process certifier assembled (``frame.info`` is the PlanBundle)."""
@@ -269,46 +315,58 @@ class FrameCertifier:
             else:
                 plan = bundle.plans[ax.axis]
                 plans[ax.axis] = plan
-                certs.append(self._guard(ax.axis, lambda: self.certify_rendered(rendered_plan_from_parts(plan, ax.frames, ax.bounds))))
+                certs.append(self._guard(ax.axis, lambda: self.certify_rendered(rendered_plan_from_parts(plan, ax.frames, ax.bounds),
+                                                                                frame.stamp_ns)))
             timings[ax.axis] = time.perf_counter() - t1
         timings["total"] = time.perf_counter() - t0
         return FrameResult(frame.stamp_ns, bundle.frame_id if bundle else "", certs, plans, bundle.camera if bundle else None, timings)
 
     # ---- all stages in memory ----
-    def certify_axis(self, cloud: Cloud, cam: CameraIntrinsics, axis: str, dense_cloud: Cloud | None = None,
-                     preview_every: int = 0, previews: list | None = None, plans: dict | None = None) -> Certificate:
-        """Plan, render and certify one axis with the core's streaming ``certify`` (frames are rendered
-        chunk by chunk, never all kept in memory). Never raises: failures are ERROR certificates."""
+    def certify_axis(self, cloud: Cloud, imaging: Any, axis: str, dense_cloud: Cloud | None = None,
+                     preview_every: int = 0, previews: list | None = None, plans: dict | None = None,
+                     stamp_ns: int = 0) -> Certificate:
+        """Plan, render and certify one axis with the core's ``certify`` (frames are never all kept in
+        memory). ``imaging`` is the frame's :class:`~pws_ros.core.imaging.Imaging`. Never raises:
+        failures are ERROR certificates."""
         from ..core.certify import certify
 
         c = self.config
+        intr = imaging.source or imaging.camera
         if c.method == "cms":
-            return self._guard(axis, lambda: certify(cloud, cam, self.model, axis, c.radius_for(axis), method="cms",
-                                                     config=self.certify_config(), denoiser=self.denoiser))
+            return self._guard(axis, lambda: self._stamp(certify(cloud, intr, self.model, axis, c.radius_for(axis), method="cms",
+                                                                 config=self.certify_config(axis, stamp_ns),
+                                                                 denoiser=self.denoiser, imaging=imaging)))
 
         def run() -> Certificate:
             t0 = time.perf_counter()
             src = self.source_cloud(cloud, dense_cloud)
-            plan = self.plan_axis(src, cam, axis)
+            plan = self.plan_axis(src, imaging, axis)
             if plans is not None:
                 plans[axis] = plan
             t_plan = time.perf_counter() - t0
-            cert = certify(src, cam, self.model, axis, c.radius_for(axis), method=c.method, config=self.certify_config(),
-                           denoiser=self.denoiser, plan=plan)
+            final: list = []
+            cert = certify(src, intr, self.model, axis, c.radius_for(axis), method=c.method,
+                           config=self.certify_config(axis, stamp_ns), denoiser=self.denoiser, plan=plan, imaging=imaging,
+                           plan_out=final)
+            if final:  # the adaptive anchors may refine the plan: publish the poses the certificate rests on
+                plan = final[-1]
+                if plans is not None:
+                    plans[axis] = plan
             cert.timings["plan"] = t_plan
             cert.timings["total"] = time.perf_counter() - t0
             if previews is not None and preview_every > 0:
-                previews.extend(self.preview(src, cam, plan, preview_every))
-            return cert
+                previews.extend(self.preview(src, imaging, plan, preview_every))
+            return self._stamp(cert)
 
         return self._guard(axis, run)
 
-    def preview(self, cloud: Cloud, cam: CameraIntrinsics, plan: Any, every: int) -> list[tuple[str, int, np.ndarray]]:
+    def preview(self, cloud: Cloud, imaging: Any, plan: Any, every: int) -> list[tuple[str, int, np.ndarray]]:
         """Every ``every``-th frame of a plan (and its alpha = 0 frame) rendered as uint8 RGB."""
-        from ..core.render import render
+        from ..core.imaging import make_renderer
 
         idx = preview_indices(plan.alphas, every)
-        frames = render(cloud, cam, plan.axis, np.asarray(plan.alphas)[idx], background=self.config.background, device=self.device)
+        renderer = make_renderer(cloud, imaging, plan.axis, device=self.device)
+        frames = renderer.render_batch(np.asarray(plan.alphas)[idx]).cpu().numpy()
         return [(plan.axis, int(i), preview_image(f)) for i, f in zip(idx, frames)]
 
     def process(self, cloud: Cloud, intr: CameraIntrinsics, stamp_ns: int, dense_cloud: Cloud | None = None, *,
@@ -325,21 +383,23 @@ class FrameCertifier:
         timings: dict[str, float] = {}
         plans: dict[str, Any] = {}
         previews: list[tuple[str, int, np.ndarray]] = []
-        cam = None
+        imaging = None
         try:
-            cam = self.render_camera(intr)
+            imaging = self.imaging_for(intr, cloud)
         except PwsError as exc:
             certs = [self.error_for(a, str(exc)) for a in self.config.axes]
-        if cam is not None:
+        if imaging is not None:
             for axis in self.config.axes:
                 t1 = time.perf_counter()
                 if should_stop is not None and should_stop():
                     certs.append(self.error_for(axis, "shutting down"))
                 else:
-                    certs.append(self.certify_axis(cloud, cam, axis, dense_cloud, preview_every, previews, plans))
+                    certs.append(self.certify_axis(cloud, imaging, axis, dense_cloud, preview_every, previews, plans,
+                                                   stamp_ns=int(stamp_ns)))
                 timings[axis] = time.perf_counter() - t1
         timings["total"] = time.perf_counter() - t0
-        return FrameResult(int(stamp_ns), frame_id or intr.frame_id, certs, plans, cam, timings, previews)
+        return FrameResult(int(stamp_ns), frame_id or intr.frame_id, certs, plans,
+                           imaging.camera if imaging is not None else None, timings, previews)
 
 
 def preview_indices(alphas: Any, every: int) -> list[int]:

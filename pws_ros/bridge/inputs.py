@@ -16,6 +16,8 @@ import threading
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from ..core.camera import CameraIntrinsics
 from ..core.cloud import Cloud
 from ..core.errors import require
@@ -169,6 +171,9 @@ def convert(frame: RawFrame, config: PwsConfig, fallback: CameraIntrinsics | Non
         cloud, intr = msgconv.cloud_from_rgbd(m["depth"], m["color"], m["info"], m.get("depth_info"),
                                               require_same_frame=config.require_same_frame)
         has_color = True
+        # the cloud as a PointCloud2 carries it (float32 x y z): the pipeline and the four-process chain
+        # (where the cloud crosses a topic) then certify exactly the same points
+        cloud = Cloud(cloud.points.astype(np.float32), cloud.colors)
     require(len(cloud) > 0, f"the input frame has no valid point ({frame.source})")
     return InputFrame(frame.source, frame.stamp_ns, frame.header, cloud, intr, has_color)
 

@@ -88,6 +88,7 @@ class PlanBundle:
     axes: list[str]
     plans: dict[str, Any] = field(default_factory=dict)    # axis -> core.partition.Plan
     errors: dict[str, str] = field(default_factory=dict)   # axis -> reason
+    imaging: Any = None                                    # core.imaging.Imaging (None: paper imaging at ``camera``)
 
     def expected(self) -> dict[str, int | str]:
         """``{axis: frame count or error}`` for :meth:`PartitionAssembler.expect`."""
@@ -125,10 +126,12 @@ def plan_bundle_to_json(bundle: PlanBundle) -> str:
         "camera": _camera_dict(bundle.camera),
         "plans": {a: _jsonable(p.to_dict()) for a, p in bundle.plans.items()},
         "errors": dict(bundle.errors),
+        "imaging": bundle.imaging.to_dict() if bundle.imaging is not None else None,
     }, allow_nan=False)
 
 
 def plan_bundle_from_json(text: str) -> PlanBundle:
+    from ..core.imaging import Imaging
     from ..core.partition import Plan
 
     try:
@@ -142,7 +145,8 @@ def plan_bundle_from_json(text: str) -> PlanBundle:
         axes = [parse_axis(a) for a in d["axes"]]
         plans = {parse_axis(a): Plan.from_dict(p) for a, p in d.get("plans", {}).items()}
         errors = {parse_axis(a): str(e) for a, e in d.get("errors", {}).items()}
-        bundle = PlanBundle(int(d["stamp_ns"]), str(d["frame_id"]), str(d["method"]), cam, axes, plans, errors)
+        imaging = Imaging.from_dict(d["imaging"], cam) if d.get("imaging") else None
+        bundle = PlanBundle(int(d["stamp_ns"]), str(d["frame_id"]), str(d["method"]), cam, axes, plans, errors, imaging)
     except KeyError as exc:
         raise PwsError(f"plan message lacks field {exc.args[0]!r}") from None
     for a in bundle.axes:

@@ -11,7 +11,8 @@ from ..core.certify import COVERAGES, CertifyConfig
 from ..core.cloud import Cloud
 from ..core.errors import PwsError, require
 from ..core.motion import AXES
-from ..core.partition import DEFAULT_DELTA_PX, DEFAULT_MAX_PARTITIONS, PLAN_METHODS
+from ..core.imaging import IMAGING_KINDS
+from ..core.partition import DEFAULT_DELTA_PX, DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, PLAN_METHODS
 
 
 def positive_float(text: str) -> float:
@@ -51,11 +52,38 @@ def add_plan_args(p: argparse.ArgumentParser, methods=PLAN_METHODS, default="pws
                         "(Thm 2), pws_of = one-frame cloud with delta-convexity (Thm 3)" + (", cms = motion-space baseline" if "cms" in methods else ""))
     p.add_argument("--delta", type=positive_float, default=None, metavar="D",
                    help=f"PwS-OF delta-convexity constant in pixels (default {DEFAULT_DELTA_PX})")
-    p.add_argument("--max-partitions", type=positive_int, default=DEFAULT_MAX_PARTITIONS, metavar="N",
-                   help=f"refuse plans with more partitions than this (default {DEFAULT_MAX_PARTITIONS})")
+    p.add_argument("--max-partitions", type=positive_int, default=DEFAULT_FRAME_BUDGET, metavar="N",
+                   help=f"most partitions (frames) per axis: plans needing more are made coarser (fewer frames, "
+                        f"looser bounds, maybe a smaller certified radius), never refused (default {DEFAULT_FRAME_BUDGET})")
+    p.add_argument("--imaging", choices=IMAGING_KINDS, default="surfel",
+                   help="imaging model (default surfel): surfel = each point is the patch its depth pixel saw, rendered at "
+                        "the camera's resolution on a centred crop and block-averaged to the model's input (no sampling "
+                        "holes); paper = one point paints one pixel at the model's size (the paper's model)")
+    p.add_argument("--border", type=int, default=-1, metavar="PX",
+                   help="surfel imaging: output pixels masked along the image edges in every frame; -1 = computed "
+                        "from the radius (default)")
+    p.add_argument("--step-px", type=positive_float, default=DEFAULT_STEP_PX, metavar="PX",
+                   help=f"surfel imaging: the plan moves no point more than PX native pixels per step (default {DEFAULT_STEP_PX})")
     p.add_argument("--min-partitions", type=int, default=0, metavar="N",
                    help="refine the planned grid to at least N partitions (still sound; tighter bounds where the method "
                         "plans only a few frames; default 0 = as planned)")
+
+
+def image_size(text: str) -> tuple[int, int]:
+    """``WxH`` -> (H, W)."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 160x90, got {text!r}") from None
+    if w < 1 or h < 1:
+        raise argparse.ArgumentTypeError(f"size must be positive, got {text}")
+    return (h, w)
+
+
+def add_imaging_size_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--size", type=image_size, default=None, metavar="WxH",
+                   help="the classifier's input size the frames are made for (default: the camera's size); "
+                        "`pws certify` takes it from the model")
 
 
 def add_smoothing_args(p: argparse.ArgumentParser) -> None:
@@ -66,11 +94,13 @@ def add_smoothing_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sigma", type=positive_float, default=d.sigma, help=f"pixel noise std (default {d.sigma})")
     p.add_argument("--n0", type=positive_int, default=d.n0, help=f"selection samples (default {d.n0})")
     p.add_argument("--n", type=positive_int, default=d.n, help=f"estimation samples per partition/anchor (default {d.n})")
-    p.add_argument("--alpha", type=positive_float, default=d.alpha, help=f"overall failure probability, split by Bonferroni (default {d.alpha})")
+    p.add_argument("--alpha", type=positive_float, default=d.alpha, help=f"risk of the certificate: the probability that its statement is wrong, split by Bonferroni over every bound used (default {d.alpha})")
     p.add_argument("--seed", type=int, default=d.seed, help=f"noise seed (default {d.seed})")
     p.add_argument("--device", default=d.device, help="torch device: cpu or cuda[:N] (default cpu)")
     p.add_argument("--batch-size", type=positive_int, default=d.batch_size, help=f"classifier batch size (default {d.batch_size})")
-    p.add_argument("--anchors", type=positive_int, default=d.num_anchors, dest="num_anchors", help=f"number of anchors for --coverage anchors (default {d.num_anchors})")
+    p.add_argument("--anchors", type=positive_int, default=d.num_anchors, dest="num_anchors",
+                   help=f"anchors for --coverage anchors; with surfel imaging the most anchors placed from the distance "
+                        f"bounds, a budget of n0 + ANCHORS * n classifier calls (default {d.num_anchors})")
     p.add_argument("--cms-sigma", type=positive_float, default=None, help="CMS motion-space sigma (default per axis, REFERENCE.md)")
     p.add_argument("--background", type=float, default=0.0, help="value of empty pixels (default 0.0)")
 
@@ -80,7 +110,8 @@ def config_from_args(args) -> CertifyConfig:
                          batch_size=args.batch_size, coverage=args.coverage, num_anchors=args.num_anchors,
                          background=args.background, max_partitions=args.max_partitions,
                          min_partitions=args.min_partitions, delta=args.delta,
-                         cms_sigma=args.cms_sigma).validate()
+                         cms_sigma=args.cms_sigma, imaging=getattr(args, "imaging", "surfel"),
+                         border=getattr(args, "border", -1), step_px=getattr(args, "step_px", DEFAULT_STEP_PX)).validate()
 
 
 def load_scene(args) -> tuple[Cloud, CameraIntrinsics]:

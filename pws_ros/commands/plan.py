@@ -1,8 +1,9 @@
 """``pws plan``: the uniform partition of the motion range (PwS / PwS-L / PwS-OF)."""
 from __future__ import annotations
 
-from ..core.partition import plan_partitions
-from .common import add_plan_args, add_scene_args, emit, load_scene
+from ..core.imaging import make_imaging
+from ..core.partition import plan_partitions, plan_step
+from .common import add_imaging_size_arg, add_plan_args, add_scene_args, emit, load_scene
 
 
 def register(sub) -> None:
@@ -11,6 +12,7 @@ def register(sub) -> None:
                                    "that PwS, PwS-L or PwS-OF needs for a cloud, camera, axis and radius.")
     add_scene_args(p)
     add_plan_args(p)
+    add_imaging_size_arg(p)
     p.add_argument("--out", metavar="PLAN.json", help="also write the plan as JSON (input of `pws render --plan`)")
     p.add_argument("--json", action="store_true", help="print the plan as JSON")
     p.set_defaults(func=run)
@@ -18,8 +20,13 @@ def register(sub) -> None:
 
 def run(args) -> int:
     cloud, intr = load_scene(args)
-    plan = plan_partitions(cloud, intr, args.axis, args.radius, args.method, delta=args.delta, max_partitions=args.max_partitions,
-                           min_partitions=args.min_partitions)
+    im = make_imaging(args.imaging, intr, args.size, border=args.border, cloud=cloud, radii={args.axis: args.radius})
+    if im.kind == "surfel":
+        plan = plan_step(cloud, im.camera, args.axis, args.radius, args.method, step_px=args.step_px,
+                         max_partitions=args.max_partitions, min_partitions=args.min_partitions)
+    else:
+        plan = plan_partitions(cloud, im.camera, args.axis, args.radius, args.method, delta=args.delta,
+                               max_partitions=args.max_partitions, min_partitions=args.min_partitions)
     if args.out:
         plan.to_json(args.out, indent=1)
     d = plan.to_dict()

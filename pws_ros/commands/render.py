@@ -5,8 +5,9 @@ import numpy as np
 
 from ..core.bounds import render_plan
 from ..core.errors import require
+from ..core.imaging import IMAGING_KINDS, make_imaging, render_plan_surfel
 from ..core.partition import Plan
-from .common import add_scene_args, emit, load_scene
+from .common import add_imaging_size_arg, add_scene_args, emit, load_scene
 
 
 def register(sub) -> None:
@@ -17,6 +18,9 @@ def register(sub) -> None:
     add_scene_args(p, radius=False)
     p.add_argument("--plan", required=True, metavar="PLAN.json", help="plan written by `pws plan --out`")
     p.add_argument("--background", type=float, default=0.0, help="value of empty pixels (default 0.0)")
+    p.add_argument("--imaging", choices=IMAGING_KINDS, default="surfel", help="imaging model (default surfel; see `pws certify --help`)")
+    p.add_argument("--border", type=int, default=-1, metavar="PX", help="surfel imaging: masked border in output pixels (-1 = from the plan's radius)")
+    add_imaging_size_arg(p)
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--out", required=True, metavar="F.npz", help="output .npz")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
@@ -27,7 +31,12 @@ def run(args) -> int:
     cloud, intr = load_scene(args)
     plan = Plan.load(args.plan)
     require(plan.axis == args.axis, f"--axis {args.axis} differs from the plan's axis {plan.axis}")
-    rp = render_plan(cloud, intr, plan, background=args.background, device=args.device)
+    im = make_imaging(args.imaging, intr, args.size, background=args.background, border=args.border, cloud=cloud,
+                      radii={plan.axis: plan.radius})
+    if im.kind == "surfel":
+        rp = render_plan_surfel(cloud, im, plan, device=args.device)
+    else:
+        rp = render_plan(cloud, im.camera, plan, background=args.background, device=args.device)
     frames = rp.frames.cpu().numpy()
     np.savez_compressed(args.out, frames=frames, alphas=plan.alphas, pair_bound_sq=rp.pair_bound_sq)
     plain = ((frames[1:].astype(np.float64) - frames[:-1]) ** 2).reshape(len(frames) - 1, -1).sum(1)

@@ -26,13 +26,15 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from .anchors import REFINE_FRACTION, place_anchors, refine_plan, target_radius
 from .bounds import SegmentValues, segment_values
 from .camera import CameraIntrinsics
 from .cloud import Cloud
 from .errors import require
+from .imaging import IMAGING_KINDS, Imaging, SurfelRenderer, make_imaging, segment_hulls
 from .model import LoadedModel
 from .motion import UNITS, parse_axis
-from .partition import DEFAULT_MAX_PARTITIONS, Plan, check_radius, plan_partitions, validate_grid
+from .partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, Plan, check_radius, plan_partitions, plan_step, validate_grid
 from .render import Renderer
 from .result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_NOT_CERTIFIED, Certificate
 from .smoothing import SmoothedClassifier, bonferroni, clopper_pearson_lower, cohen_radius
@@ -53,11 +55,14 @@ class CertifyConfig:
     coverage: str = "pairwise"
     num_anchors: int = 9
     background: float = 0.0
-    max_partitions: int = DEFAULT_MAX_PARTITIONS
+    max_partitions: int = DEFAULT_FRAME_BUDGET
     min_partitions: int = 0
     delta: float | None = None
     cms_sigma: float | None = None
     chunk: int = 128
+    imaging: str = "surfel"
+    border: int = -1
+    step_px: float = DEFAULT_STEP_PX
 
     def validate(self) -> "CertifyConfig":
         require(math.isfinite(self.sigma) and self.sigma > 0, f"sigma must be positive, got {self.sigma}")
@@ -68,6 +73,8 @@ class CertifyConfig:
         require(int(self.batch_size) >= 1, f"batch_size must be >= 1, got {self.batch_size}")
         require(int(self.min_partitions) >= 0, f"min_partitions must be >= 0, got {self.min_partitions}")
         require(math.isfinite(self.background), f"background must be finite, got {self.background}")
+        require(self.imaging in IMAGING_KINDS, f"unknown imaging model {self.imaging!r}: expected one of {', '.join(IMAGING_KINDS)}")
+        require(math.isfinite(self.step_px) and self.step_px > 0, f"step_px must be positive, got {self.step_px}")
         return self
 
     def to_dict(self) -> dict[str, Any]:
@@ -89,6 +96,20 @@ def symmetric_reach(covered: np.ndarray, centre: int) -> int:
     while j < centre and centre + j < nseg and covered[centre - j - 1] and covered[centre + j]:
         j += 1
     return j
+
+
+def covered_radius(covered: np.ndarray, alphas: np.ndarray, centre: int) -> float:
+    """Largest ``r`` such that every segment inside ``[-r, r]`` is covered (the grid need not be symmetric):
+    the smaller of the covered runs from ``alpha = 0`` to the right and to the left."""
+    i = centre
+    while i < len(covered) and covered[i]:
+        i += 1
+    right = float(alphas[i])
+    i = centre - 1
+    while i >= 0 and covered[i]:
+        i -= 1
+    left = -float(alphas[i + 1])
+    return min(right, left)
 
 
 def cohen_radii(p_a_lower, sigma: float) -> np.ndarray:
@@ -114,41 +135,79 @@ def _label_name(model: LoadedModel, label: int) -> str:
         return f"class_{label}"
 
 
+def imaging_for(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, config: CertifyConfig,
+                radii: dict[str, float]) -> Imaging:
+    """The imaging of ``config`` for camera ``intr`` and ``model``'s input size (border from ``radii``)."""
+    return make_imaging(config.imaging, intr, getattr(model, "input_size", None), background=config.background,
+                        border=int(config.border), cloud=cloud, radii=radii)
+
+
 def certify(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, axis: str, radius: float, method: str = "pws_of",
             config: CertifyConfig | None = None, denoiser=None, plan: Plan | None = None,
-            progress: Callable[[int, int], None] | None = None) -> Certificate:
-    """Certify the smoothed prediction on ``cloud`` seen by ``intr`` for motions ``[-radius, radius]``.
+            progress: Callable[[int, int], None] | None = None, imaging: Imaging | None = None,
+            plan_out: list | None = None) -> Certificate:
+    """Certify the smoothed prediction on ``cloud`` seen by camera ``intr`` for motions ``[-radius, radius]``.
 
-    ``cloud`` is the cloud that is rendered: the entire cloud for ``pws``, the one-frame cloud for
-    ``pws_of`` (``pws_l`` uses what it is given). ``method='cms'`` runs the CMS baseline.
+    ``intr`` is the input camera; frames are made by the imaging model of ``config.imaging`` (or the given
+    ``imaging``, see :mod:`.imaging`). ``cloud`` is the cloud that is rendered: the entire cloud for
+    ``pws`` (paper imaging only), the one-frame cloud for ``pws_of`` (``pws_l`` uses what it is given).
+    ``method='cms'`` runs the CMS baseline with the same imaging model. ``plan_out`` (a list) receives the
+    plan the certificate rests on (the given or planned one, refined by the adaptive anchors).
     """
     config = (config or CertifyConfig()).validate()
     axis = parse_axis(axis)
     radius = check_radius(radius)
     require(method in METHODS, f"unknown method {method!r}: expected one of {', '.join(METHODS)}")
     cloud.require_nonempty()
-    model.check_input_size(intr.height, intr.width, what="camera")
+    if imaging is None:
+        require(not (config.imaging == "surfel" and method == "pws"),
+                "method pws plans on the entire scene cloud, which has no depth pixels to make surfels of: "
+                "use imaging paper, or method pws_of / pws_l with the one-frame cloud")
+        imaging = imaging_for(cloud, intr, model, config, {axis: radius})
+    cam = imaging.camera
+    model.check_input_size(*imaging.out_shape, what="camera")
     if method == "cms":
         from .cms import certify_cms
 
-        return certify_cms(cloud, intr, model, axis, radius, motion_sigma=config.cms_sigma, n0=config.n0, n=config.n,
+        cert = certify_cms(cloud, cam, model, axis, radius, motion_sigma=config.cms_sigma, n0=config.n0, n=config.n,
                            alpha=config.alpha, seed=config.seed, device=config.device, batch_size=config.batch_size,
-                           background=config.background, progress=progress)
+                           background=config.background, progress=progress, imaging=imaging)
+        cert.imaging = imaging.kind
+        return cert
     t_start = time.perf_counter()
     if plan is None:
-        plan = plan_partitions(cloud, intr, axis, radius, method, delta=config.delta, max_partitions=config.max_partitions,
-                               min_partitions=int(config.min_partitions))
+        if imaging.kind == "surfel":
+            plan = plan_step(cloud, cam, axis, radius, method, step_px=config.step_px,
+                             max_partitions=config.max_partitions, min_partitions=int(config.min_partitions))
+        else:
+            plan = plan_partitions(cloud, cam, axis, radius, method, delta=config.delta,
+                                   max_partitions=config.max_partitions, min_partitions=int(config.min_partitions))
     else:
         require(plan.axis == axis, f"plan is for axis {plan.axis}, not {axis}")
         require(abs(plan.radius - radius) <= 1e-12 * radius, f"plan is for radius {plan.radius:g}, not {radius:g}")
         validate_grid(plan.alphas, plan.radius)
     t_plan = time.perf_counter() - t_start
     t0 = time.perf_counter()
-    values = segment_values(cloud, intr, axis, plan.alphas, config.background)
-    renderer = Renderer(cloud, intr, axis, background=config.background, device=config.device)
-    t_render = time.perf_counter() - t0
-    return _certify_stream(renderer, plan, values, model, config, denoiser, progress, method,
-                           {"plan": t_plan, "render": t_render}, t_start)
+    timings = {"plan": t_plan, "render": 0.0}
+    if imaging.kind == "surfel":
+        renderer = SurfelRenderer(cloud, imaging, axis, device=config.device,
+                                  alpha_range=(float(plan.alphas[0]), float(plan.alphas[-1])))
+        if config.coverage == "anchors":
+            cert = _certify_anchored(renderer, plan, model, config, denoiser, progress, method, timings, t_start, plan_out)
+            cert.bounds["imaging"] = imaging.to_dict()
+            cert.imaging = imaging.kind
+            return cert
+        values = segment_hulls(renderer, plan.alphas)
+    else:
+        values = segment_values(cloud, cam, axis, plan.alphas, config.background)
+        renderer = Renderer(cloud, cam, axis, background=config.background, device=config.device)
+    timings["bounds"] = time.perf_counter() - t0
+    cert = _certify_stream(renderer, plan, values, model, config, denoiser, progress, method, timings, t_start)
+    if plan_out is not None:
+        plan_out.append(plan)
+    cert.bounds["imaging"] = imaging.to_dict()
+    cert.imaging = imaging.kind
+    return cert
 
 
 def certify_rendered(rendered, model: LoadedModel, config: CertifyConfig | None = None, denoiser=None,
@@ -172,8 +231,10 @@ def certify_rendered(rendered, model: LoadedModel, config: CertifyConfig | None 
             idx = np.searchsorted(rendered.plan.alphas, np.asarray(alphas))
             return frames[torch.as_tensor(idx)]
 
-    return _certify_stream(_Given(), rendered.plan, rendered.values, model, config, denoiser, progress,
+    cert = _certify_stream(_Given(), rendered.plan, rendered.values, model, config, denoiser, progress,
                            rendered.plan.method, {"plan": 0.0, "render": 0.0}, t_start)
+    cert.imaging = str(rendered.plan.details.get("imaging", "paper"))
+    return cert
 
 
 def _certify_stream(renderer, plan: Plan, values: SegmentValues, model: LoadedModel, config: CertifyConfig, denoiser,
@@ -263,9 +324,21 @@ def _certify_stream(renderer, plan: Plan, values: SegmentValues, model: LoadedMo
         j = symmetric_reach(covered, centre)
         covered_count = int(covered.sum())
     bounds["segments_covered"] = covered_count
+    t_stats += time.perf_counter() - t1
+    timings = dict(timings)
+    timings.update(render=t_render, inference=sc.inference_seconds, statistics=t_stats)
+    return _conclude(plan, centre, float(plan.alphas[centre + j]), est_pos, p_lower, R, label, model, config, method, sc,
+                     bounds, timings, t_start, frames_rendered=N + 1 + (m_bounds if anchors else 0))
+
+
+def _conclude(plan: Plan, centre: int, reach: float, est_pos: dict[int, int], p_lower: np.ndarray, R: np.ndarray, label: int,
+              model: LoadedModel, config: CertifyConfig, method: str, sc: SmoothedClassifier, bounds: dict[str, Any],
+              timings: dict[str, float], t_start: float, frames_rendered: int) -> Certificate:
+    """The certificate of a covered interval ``[-reach, reach]`` (``reach`` = ``plan.radius``: certified)."""
+    axis = plan.axis
     centre_ok = (R[est_pos[centre]] > 0) if centre in est_pos else False
-    radius = float(plan.alphas[centre + j]) if centre_ok else 0.0
-    certified = bool(centre_ok and j == centre)
+    radius = float(reach) if centre_ok else 0.0
+    certified = bool(centre_ok and radius >= plan.radius)
     if not centre_ok:
         status, reason = STATUS_ABSTAIN, f"p_A lower bound at the original pose is {p_lower[est_pos[centre]]:.4f} <= 0.5"
     elif certified:
@@ -273,13 +346,84 @@ def _certify_stream(renderer, plan: Plan, values: SegmentValues, model: LoadedMo
     else:
         status = STATUS_NOT_CERTIFIED
         reason = f"covered up to ±{radius:g} {UNITS[axis]} of ±{plan.radius:g} ({config.coverage} rule)"
-    t_stats += time.perf_counter() - t1
-    timings = dict(timings)
-    timings.update(render=t_render, inference=sc.inference_seconds, statistics=t_stats,
-                   total=time.perf_counter() - t_start)
+    timings["total"] = time.perf_counter() - t_start
+    if "coarsened_from" in plan.details:
+        bounds["coarsened_from"] = plan.details["coarsened_from"]
     return Certificate(axis=axis, unit=UNITS[axis], method=method, coverage=config.coverage,
                        requested_radius=float(plan.radius), status=status, certified=certified, radius=radius,
                        label=label, class_name=_label_name(model, label), p_a_lower=[float(p) for p in p_lower],
-                       sigma=float(config.sigma), n0=int(config.n0), n=n, alpha=float(config.alpha), num_bounds=m_bounds,
-                       num_partitions=N, delta_alpha=float(plan.delta_alpha), frames_rendered=N + 1 + (m_bounds if anchors else 0),
-                       classifier_calls=int(sc.calls), bounds=bounds, timings=timings, reason=reason, seed=int(config.seed))
+                       sigma=float(config.sigma), n0=int(config.n0), n=int(config.n), alpha=float(config.alpha),
+                       num_bounds=len(p_lower), num_partitions=plan.num_partitions, delta_alpha=float(plan.delta_alpha),
+                       frames_rendered=frames_rendered, classifier_calls=int(sc.calls), bounds=bounds, timings=timings,
+                       reason=reason, seed=int(config.seed))
+
+
+def _certify_anchored(renderer: SurfelRenderer, plan: Plan, model: LoadedModel, config: CertifyConfig, denoiser,
+                      progress, method: str, timings: dict[str, float], t_start: float,
+                      plan_out: list | None = None) -> Certificate:
+    """Anchors from the distance profile (:mod:`.anchors`): the selection samples at alpha = 0 predict a target
+    radius; the grid is refined where consecutive frames differ by more than a fraction of it; anchors are
+    placed so that every segment lies within the target of one (sound bounds of :func:`.imaging.segment_hulls`);
+    then p_A is estimated at those anchors only (Bonferroni over them) and segment ``i`` is covered by any
+    anchor ``a`` with ``D_i(x_a) < R_a``."""
+    sc = SmoothedClassifier(model, config.sigma, batch_size=config.batch_size, seed=config.seed, denoiser=denoiser)
+    max_anchors = int(config.num_anchors)
+    total_work = config.n0 + max_anchors * config.n
+    t0 = time.perf_counter()
+    x0 = renderer.render_batch(np.array([0.0]))
+    t_render = time.perf_counter() - t0
+    counts0 = sc.sample_counts(x0, int(config.n0))
+    label = int(torch.argmax(counts0[0]).item())
+    if progress is not None:
+        progress(config.n0, total_work)
+    target = target_radius(int(counts0[0, label]), int(config.n0), int(config.n), config.sigma, config.alpha, max_anchors)
+    t0 = time.perf_counter()
+    frames = renderer.render_batch(plan.alphas).cpu().numpy()
+    if target > 0:
+        plan = refine_plan(plan, frames, target / REFINE_FRACTION, int(config.max_partitions))
+        if len(plan.alphas) != len(frames):
+            frames = renderer.render_batch(plan.alphas).cpu().numpy()
+    t_render += time.perf_counter() - t0
+    N = plan.num_partitions
+    centre = int(np.searchsorted(plan.alphas, 0.0))
+    require(plan.alphas[centre] == 0.0, "plan grid lacks alpha = 0")
+    if plan_out is not None:
+        plan_out.append(plan)
+    t0 = time.perf_counter()
+    hulls = segment_hulls(renderer, plan.alphas)
+    timings = dict(timings, bounds=timings.get("bounds", 0.0) + time.perf_counter() - t0)
+    t1 = time.perf_counter()
+    rows: dict[int, np.ndarray] = {}
+
+    def row(jj: int) -> np.ndarray:
+        if jj not in rows:
+            rows[jj] = hulls.dist_sq(frames[jj])
+        return rows[jj]
+
+    est_idx = np.array(place_anchors(row, plan.alphas, centre, target ** 2, max_anchors), dtype=np.int64)
+    t_stats = time.perf_counter() - t1
+    K = len(est_idx)
+    counts = sc.sample_counts(torch.as_tensor(frames[est_idx]), int(config.n))
+    k_est = counts[:, label].numpy()
+    if progress is not None:
+        progress(total_work, total_work)
+    t1 = time.perf_counter()
+    p_lower = np.asarray(clopper_pearson_lower(k_est, int(config.n), bonferroni(config.alpha, K)), dtype=np.float64).reshape(-1)
+    R = cohen_radii(p_lower, config.sigma)
+    D2 = np.stack([row(int(a)) for a in est_idx])
+    covered = np.any(D2 < (R[:, None] ** 2), axis=0)
+    reach = covered_radius(covered, plan.alphas, centre)
+    steps = np.sqrt(np.sum((frames[1:].astype(np.float64) - frames[:-1]) ** 2, axis=(1, 2, 3)))
+    half = (plan.alphas[:-1] >= -reach) & (plan.alphas[1:] <= reach)
+    bounds: dict[str, Any] = {
+        "anchors": [float(plan.alphas[a]) for a in est_idx], "target_radius": float(target),
+        "R_min": float(R.min()), "R_centre": float(R[0]), "segments_covered": int(covered.sum()),
+        "max_anchor_dist": float(np.sqrt(D2.min(axis=0).max())) if D2.size else 0.0,
+        # a lower bound on the anchors any rule needs: the rendered path over the covered range / (2 R)
+        "path_length": float(steps.sum()), "path_anchor_bound": float(steps[half].sum() / (2 * max(float(R.max()), 1e-12))),
+    }
+    t_stats += time.perf_counter() - t1
+    timings = dict(timings)
+    timings.update(render=t_render, inference=sc.inference_seconds, statistics=t_stats)
+    return _conclude(plan, centre, reach, {int(a): i for i, a in enumerate(est_idx)}, p_lower, R, label, model, config,
+                     method, sc, bounds, timings, t_start, frames_rendered=N)

@@ -51,7 +51,7 @@ def _sync(device: torch.device) -> None:
 def certify_cms(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, axis: str, radius: float, *,
                 motion_sigma: float | None = None, n0: int = 100, n: int = 1000, alpha: float = 0.01, seed: int = 0,
                 device: str | torch.device | None = "cpu", batch_size: int = 500, background: float = 0.0,
-                progress: Callable[[int, int], None] | None = None) -> Certificate:
+                progress: Callable[[int, int], None] | None = None, imaging=None) -> Certificate:
     """Certify ``model`` on ``cloud`` seen by ``intr`` against motion ``|alpha| <= radius`` along
     ``axis`` with the CMS baseline; see the module docstring. Raises PwsError on bad input.
 
@@ -77,12 +77,17 @@ def certify_cms(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, axis: 
     require(callable(model), "model must be a LoadedModel")
     check = getattr(model, "check_input_size", None)
     if check is not None:
-        check(intr.height, intr.width, what="camera image")
+        check(*(imaging.out_shape if imaging is not None else intr.shape), what="camera image")
     require(progress is None or callable(progress), "progress must be callable(done, total)")
 
     dev = resolve_device(device)
     model_dev = torch.device(getattr(model, "device", "cpu"))
-    renderer = Renderer(cloud, intr, axis, background=background, device=dev)
+    if imaging is not None and imaging.kind == "surfel":  # the imaging model of core.imaging
+        from .imaging import SurfelRenderer
+
+        renderer = SurfelRenderer(cloud, imaging, axis, device=dev)
+    else:
+        renderer = Renderer(cloud, intr, axis, background=background, device=dev)
     rng = np.random.Generator(np.random.PCG64(int(seed)))
     select_alphas = rng.normal(0.0, s, size=n0)
     estimate_alphas = rng.normal(0.0, s, size=n)

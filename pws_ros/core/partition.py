@@ -38,6 +38,8 @@ from .sweep import Visits, compute_visits, pixel_states
 PLAN_METHODS = ("pws", "pws_l", "pws_of")
 DEFAULT_DELTA_PX = 0.05
 DEFAULT_MAX_PARTITIONS = 20000
+DEFAULT_FRAME_BUDGET = 257  # max_partitions of a certificate (config, CLI): frames rendered per axis
+DEFAULT_STEP_PX = 0.25
 # PwS-L leaves out visits spanning at most this many pixels: a point grazing a pixel corner (or sitting
 # in the 1e-6 px overlap of two footprints) would otherwise ask for ~1e6x more frames for a change the
 # rendered bounds account for anyway.
@@ -103,15 +105,19 @@ def check_radius(radius: float) -> float:
     return r
 
 
+def grid_size(radius: float, delta_alpha: float) -> int:
+    """Number of partitions ``2 ceil(radius / delta_alpha) + 1`` of the uniform grid with step ``<= delta_alpha``."""
+    return 2 * max(1, math.ceil(radius / delta_alpha * (1 - 1e-12))) + 1
+
+
 def make_grid(radius: float, delta_alpha: float, max_partitions: int = DEFAULT_MAX_PARTITIONS) -> np.ndarray:
-    """Uniform grid from ``-radius`` to ``+radius`` containing 0, step ``<= delta_alpha``."""
+    """Uniform grid from ``-radius`` to ``+radius`` containing 0, step ``<= delta_alpha``; a grid that would
+    need more than ``max_partitions`` frames is made coarser (the largest odd size within the cap): the
+    per-segment bounds count every extra value a coarser segment shows, so it stays sound, only looser."""
     radius = check_radius(radius)
     require(delta_alpha > 0 and math.isfinite(delta_alpha), f"delta_alpha must be positive, got {delta_alpha}")
-    m = max(1, math.ceil(radius / delta_alpha * (1 - 1e-12)))
-    n = 2 * m + 1
-    if n > max_partitions:
-        raise PwsError(f"the plan needs {n} partitions (delta_alpha={delta_alpha:.3g}) for radius {radius:g}, "
-                       f"more than max_partitions={max_partitions}; raise the cap or reduce the radius")
+    require(int(max_partitions) >= 3, f"max_partitions must be >= 3, got {max_partitions}")
+    m = min((grid_size(radius, delta_alpha) - 1) // 2, (int(max_partitions) - 1) // 2)
     alphas = radius * np.arange(-m, m + 1, dtype=np.float64) / m
     alphas[0], alphas[m], alphas[-1] = -radius, 0.0, radius  # exact ends (radius * m / m can miss by an ulp)
     return alphas
@@ -298,10 +304,57 @@ def plan_partitions(cloud: Cloud, intr: CameraIntrinsics, axis: str, radius: flo
         if radius / m_min < step:
             step = radius / m_min
             details["refined_for_min_partitions"] = int(min_partitions)
+    if grid_size(radius, step) > max_partitions:
+        details["coarsened_from"] = grid_size(radius, step)
     alphas = make_grid(radius, step, max_partitions)
     shortest = min(float(lengths.min()) if len(lengths) else math.inf, runs.hole_min_length)
     details["lemma1_holds"] = bool(shortest >= (alphas[1] - alphas[0]))  # every run (holes too) >= step
     details["min_run"] = shortest
     details["min_hole_run"] = runs.hole_min_length
+    details["plan_seconds"] = time.perf_counter() - t0
+    return Plan(method, axis, radius, delta_alpha, len(alphas), alphas, UNITS[axis], details)
+
+
+def plan_step(cloud: Cloud, intr: CameraIntrinsics, axis: str, radius: float, method: str = "pws_of", *,
+              step_px: float = DEFAULT_STEP_PX, max_partitions: int = DEFAULT_MAX_PARTITIONS,
+              min_partitions: int = 0) -> Plan:
+    """The plan of the surfel imaging model (:mod:`.imaging`): a uniform grid whose step moves no point of
+    the cloud seen by ``intr`` (the native camera) by more than ``step_px`` pixels.
+
+    The surfel bounds hold on any grid (they count every value a segment shows, Lemma 1 is not needed),
+    so the step only trades frames for tightness: about half a native pixel per segment keeps the
+    bounds close to the distances between neighbouring frames. ``L_P`` is the Lipschitz constant of
+    :func:`.motion.lipschitz_constant`, over the points in front of the camera that project into (or
+    within half a frame of) the image. More than ``max_partitions`` frames: a coarser grid
+    (``details['coarsened_from']``), never a refusal; fewer than ``min_partitions``: refined.
+    """
+    t0 = time.perf_counter()
+    axis = parse_axis(axis)
+    radius = check_radius(radius)
+    require(method in PLAN_METHODS, f"unknown planning method {method!r}: expected one of {', '.join(PLAN_METHODS)}")
+    require(math.isfinite(step_px) and step_px > 0, f"step_px must be positive, got {step_px}")
+    require(isinstance(max_partitions, int) and max_partitions >= 3, f"max_partitions must be an integer >= 3, got {max_partitions!r}")
+    require(isinstance(min_partitions, int) and min_partitions >= 0, f"min_partitions must be an integer >= 0, got {min_partitions!r}")
+    cloud.require_nonempty()
+    pts = cloud.points[cloud.points[:, 2] > 0]
+    u, v, _ = project(pts, intr, axis, 0.0)
+    near = (u > -0.5 * intr.width) & (u < 1.5 * intr.width) & (v > -0.5 * intr.height) & (v < 1.5 * intr.height)
+    pts = pts[near]
+    details: dict[str, Any] = {"rule": "step", "imaging": "surfel", "step_px": float(step_px), "cloud_points": int(len(pts))}
+    if axis == "tz":
+        require(len(pts) == 0 or float(pts[:, 2].min()) > radius,
+                f"tz radius {radius:g} m reaches the nearest point of the cloud ({float(pts[:, 2].min()):.3g} m)")
+    L = float(lipschitz_constant(pts, intr, axis, -radius, radius).max()) if len(pts) else 0.0
+    details["max_speed_px"] = L
+    delta_alpha = radius if L <= 0 or not math.isfinite(L) else min(radius, step_px / L)
+    step = delta_alpha
+    if min_partitions > 3:
+        m_min = min(min_partitions // 2, (max_partitions - 1) // 2)
+        if radius / m_min < step:
+            step = radius / m_min
+            details["refined_for_min_partitions"] = int(min_partitions)
+    if grid_size(radius, step) > max_partitions:
+        details["coarsened_from"] = grid_size(radius, step)
+    alphas = make_grid(radius, step, max_partitions)
     details["plan_seconds"] = time.perf_counter() - t0
     return Plan(method, axis, radius, delta_alpha, len(alphas), alphas, UNITS[axis], details)

@@ -46,6 +46,8 @@ class Certificate:
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage: plan, render, inference, statistics, total
     reason: str = ""
     seed: int | None = None
+    imaging: str = ""                 # surfel | paper (core.imaging): what the certified frames are
+    frame_alpha: float | None = None  # risk of the whole frame's statement (all its axes together)
 
     @property
     def min_p_a_lower(self) -> float:

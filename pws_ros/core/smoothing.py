@@ -273,6 +273,16 @@ class SmoothedClassifier:
         return torch.cat(out).cpu()
 
 
+def derive_seed(seed: int, stamp_ns: int, axis: str) -> int:
+    """The seed of one frame and axis: a 63-bit integer drawn from ``numpy.random.SeedSequence`` of
+    (seed, stamp, axis), so equal inputs give equal certificates while the noise of different frames and
+    axes is independent (not the same draws reused)."""
+    from .motion import AXES, parse_axis
+
+    entropy = [int(seed) & 0xFFFFFFFFFFFFFFFF, int(stamp_ns) & 0xFFFFFFFFFFFFFFFF, AXES.index(parse_axis(axis))]
+    return int(np.random.SeedSequence(entropy).generate_state(1, np.uint64)[0] >> np.uint64(1))
+
+
 def top_class(counts: Any) -> int:
     """Index of the most frequent class (lowest index on ties) of a 1-D count vector."""
     c = _to_numpy(counts)

@@ -85,7 +85,7 @@ class ProjectorNode:
             if self.worker.stopping:
                 return
             try:
-                rendered = self.engine.render_axis(cloud, bundle.camera, plan)
+                rendered = self.engine.render_axis(cloud, bundle.imaging or bundle.camera, plan)
             except PwsError as exc:
                 self.pub_errors.publish(scheme.render_error_message(S, axis, str(exc), T))
                 continue

@@ -51,10 +51,14 @@ DEFAULT_WIDTH, DEFAULT_HEIGHT = 160, 90
 
 
 def default_intrinsics(width: int = DEFAULT_WIDTH, height: int = DEFAULT_HEIGHT) -> CameraIntrinsics:
-    """The 1280x720 base camera scaled to ``width x height``."""
+    """The 1280x720 base camera at ``width / 1280`` of its resolution with square pixels, centred, and
+    ``height`` rows: ``BASE_CAMERA.scaled`` for 16:9 sizes; other sizes see more or less above and below
+    (a 640x480 camera is the 160x90 view's camera at 4x its resolution, with 60 more rows each side)."""
     require(int(width) >= 8 and int(height) >= 8, f"image size must be at least 8x8, got {width}x{height}")
     require(int(width) <= 4096 and int(height) <= 4096, f"image size must be at most 4096x4096, got {width}x{height}")
-    return BASE_CAMERA.scaled(int(width), int(height))
+    s = int(width) / BASE_CAMERA.width
+    return CameraIntrinsics(int(width), int(height), BASE_CAMERA.fx * s, BASE_CAMERA.fy * s,
+                            (BASE_CAMERA.cx + 0.5) * s - 0.5, int(height) / 2 - 0.5, FRAME_ID)
 
 
 def class_index(name: str) -> int:

@@ -1,0 +1,124 @@
+"""Anchors from the distance profile: where to estimate ``p_A`` so that every segment is covered.
+
+Given sound distance bounds ``D_i(x_j)^2`` (every frame of segment ``i`` lies within ``D_i(x_j)`` of the
+grid frame ``x_j``, :class:`.imaging.HullValues`) and a *target* Cohen radius ``r`` predicted from the
+selection samples, :func:`place_anchors` picks grid frames greedily, outward from ``alpha = 0`` and
+balancing both sides (the certified radius is symmetric), so that every segment it reaches has an anchor
+within ``r``; it stops at ``max_anchors`` (the budget: ``n0 + max_anchors * n`` classifier calls) or when a
+segment cannot be covered by any nearby grid frame.
+
+Why Bonferroni stays valid: the anchor set is a function of the plan, the bounds and the ``n0``
+selection samples only. The ``n`` estimation samples of each anchor are drawn afterwards, independent
+of those, so conditionally on the anchor set the ``K`` Clopper-Pearson bounds at level ``alpha / K``
+fail together with probability at most ``alpha`` (the same argument as Cohen et al.'s separate
+selection and estimation samples).
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from .partition import Plan
+from .smoothing import clopper_pearson_lower, cohen_radius
+
+REFINE_FRACTION = 3.0  # grid segments whose end frames differ by more than target / this are subdivided
+TARGET_MARGIN = 0.95   # the target radius is this fraction of the radius the selection samples predict
+SEARCH_WINDOW = 16     # grid frames beyond the first uncovered segment tried as the next anchor
+
+
+def target_radius(k0: int, n0: int, n: int, sigma: float, alpha: float, max_anchors: int) -> float:
+    """The Cohen radius an anchor will likely get: the selection frequency ``k0 / n0`` carried over to
+    ``n`` estimation samples at the worst Bonferroni level ``alpha / max_anchors``, times TARGET_MARGIN
+    (0 when the prediction is not above 1/2). A planning value only: soundness never rests on it."""
+    k_hat = int(np.floor(n * k0 / max(1, n0)))
+    p = float(clopper_pearson_lower(k_hat, n, alpha / max(1, max_anchors)))
+    if p <= 0.5:
+        return 0.0
+    return TARGET_MARGIN * float(cohen_radius(p, sigma))
+
+
+def place_anchors(dist_sq_row: Callable[[int], np.ndarray], alphas: np.ndarray, centre: int, target_sq: float,
+                  max_anchors: int) -> list[int]:
+    """Grid indices of the anchors (the centre first). ``dist_sq_row(j)`` returns ``D_i(x_j)^2`` for every
+    segment ``i`` (segment ``i`` joins grid points ``i`` and ``i + 1`` of ``alphas``; ``alphas[centre]`` = 0)."""
+    S = len(alphas) - 1
+    rows: dict[int, np.ndarray] = {}
+
+    def row(j: int) -> np.ndarray:
+        if j not in rows:
+            rows[j] = np.asarray(dist_sq_row(j), dtype=np.float64)
+        return rows[j]
+
+    anchors = [centre]
+    covered = row(centre) < target_sq
+    if target_sq <= 0:
+        return anchors
+
+    def frontier_right(cov):
+        f = centre
+        while f < S and cov[f]:
+            f += 1
+        return f  # first uncovered segment on the right (S if none)
+
+    def frontier_left(cov):
+        f = centre - 1
+        while f >= 0 and cov[f]:
+            f -= 1
+        return f  # first uncovered segment on the left (-1 if none)
+
+    blocked = {"r": False, "l": False}
+    while len(anchors) < max_anchors:
+        fr, fl = frontier_right(covered), frontier_left(covered)
+        reach_r, reach_l = float(alphas[fr]), -float(alphas[fl + 1])
+        open_r = fr < S and not blocked["r"]
+        open_l = fl >= 0 and not blocked["l"]
+        if not open_r and not open_l:
+            break
+        # the symmetric radius is the smaller reach: extend that side; stop once the other side is
+        # blocked below this one's reach (more anchors there would not widen the certificate)
+        side = "r" if open_r and (not open_l or reach_r <= reach_l) else "l"
+        if (side == "r" and (fl >= 0 and blocked["l"]) and reach_r >= reach_l) or \
+           (side == "l" and (fr < S and blocked["r"]) and reach_l >= reach_r):
+            break
+        seg = fr if side == "r" else fl
+        if side == "r":
+            cands = range(seg, min(S, seg + SEARCH_WINDOW) + 1)
+        else:
+            cands = range(seg + 1, max(0, seg + 1 - SEARCH_WINDOW) - 1, -1)
+        best, best_reach = None, -1.0
+        for j in cands:
+            if j in anchors or not row(j)[seg] < target_sq:
+                continue
+            cov = covered | (row(j) < target_sq)
+            reach = float(alphas[frontier_right(cov)]) if side == "r" else -float(alphas[frontier_left(cov) + 1])
+            if reach > best_reach:
+                best, best_reach = j, reach
+        if best is None:
+            blocked[side] = True
+            continue
+        anchors.append(best)
+        covered |= row(best) < target_sq
+    return anchors
+
+
+def refine_plan(plan: Plan, frames: np.ndarray, max_step: float, max_partitions: int) -> Plan:
+    """Subdivide every segment whose end frames differ (l2) by more than ``max_step`` into equal parts so
+    that consecutive frames differ by about ``max_step`` at most (fine enough to place anchors within a
+    target radius), keeping at most ``max_partitions`` grid points (fewer parts everywhere if needed).
+    The grid stays a grid of the same interval that contains 0; only tightness depends on it."""
+    f = np.asarray(frames, dtype=np.float64)
+    d = np.sqrt(((f[1:] - f[:-1]) ** 2).reshape(len(f) - 1, -1).sum(axis=1))
+    parts = np.maximum(1, np.ceil(d / max(max_step, 1e-12))).astype(np.int64)
+    budget = max(len(d), int(max_partitions) - 1)
+    if parts.sum() > budget:
+        scale = (budget - len(d)) / max(1, int((parts - 1).sum()))
+        parts = 1 + np.floor((parts - 1) * scale).astype(np.int64)
+    if int(parts.max()) == 1:
+        return plan
+    a = plan.alphas
+    pieces = [a[i] + (a[i + 1] - a[i]) * np.arange(parts[i]) / parts[i] for i in range(len(d))]
+    alphas = np.concatenate(pieces + [a[-1:]])
+    alphas[np.argmin(np.abs(alphas))] = 0.0
+    details = dict(plan.details, refined_from=int(len(a)), refine_max_step=float(max_step))
+    return Plan(plan.method, plan.axis, plan.radius, float(np.diff(alphas).max()), len(alphas), alphas, plan.unit, details)

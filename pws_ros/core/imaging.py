@@ -1,0 +1,646 @@
+"""The imaging model: the image a camera moved by ``alpha`` delivers to the classifier, and its bounds.
+
+One home for what a certificate is about. Two models:
+
+* ``surfel`` (the default). Every point of the one-frame cloud stands for the surface patch its depth
+  pixel saw: a fronto-parallel square *surfel* centred on the point, of half side
+  ``(1/2 + SURFEL_OVERLAP) Z / fx`` by ``(1/2 + SURFEL_OVERLAP) Z / fy`` (``Z`` its depth in the recorded
+  frame, ``fx, fy`` the native camera). At motion ``alpha`` its *footprint* is the axis-aligned bounding
+  box ``[umin, umax) x [vmin, vmax)`` of the projections of its four corners (pixel-edge coordinates,
+  :func:`.motion.project`); it covers native pixel ``(r, c)`` when the pixel centre ``(c + 1/2, r + 1/2)``
+  lies inside. A surfel with a corner at depth ``<= 0`` is not drawn. The pixel shows the covering
+  surfel whose *centre* is nearest (exact float ties: the lower point index, :data:`.motion.DEPTH_TIE_REL`),
+  or ``background`` where none covers it (invalid depth, disocclusions, what the recording never saw).
+  At ``alpha = 0`` a cloud back-projected from the camera's own depth image re-renders that image
+  exactly (every surfel covers its own pixel centre); neighbours at equal depth overlap by
+  ``SURFEL_OVERLAP`` pixels, so moving the camera opens no sampling holes, only true disocclusions.
+
+  The camera image is cropped, centred, to ``k`` times the classifier's input size (the largest integer
+  ``k`` that fits: a 640x480 camera and a 160x90 model give a 640x360 crop, ``k = 4``), rendered at that
+  native resolution, reduced by an exact ``k x k`` block mean (float64, then float32: what
+  ``cv2.resize(..., INTER_AREA)`` does at an integer factor), and a border of ``border`` output pixels
+  (columns left and right, rows top and bottom) is set to ``background`` in every frame and in the
+  classifier's input. The border is computed from the requested radii (how far any point of the frame
+  moves, less the native pixels beyond the crop), so that what enters the image from outside the
+  recording is masked; where it is too small, the bounds count the background instead (sound either way).
+* ``paper``: the paper's model (one point paints one pixel, holes show ``background``) at the
+  classifier's input size, rendered by :mod:`.render` and bounded by the exact sweep of :mod:`.sweep`.
+
+Bounds of the surfel model (:func:`segment_hulls`): for a segment ``[a, b]`` of the plan, every native
+pixel gets the per-channel interval ``[lo, hi]`` of every value it can show for some ``alpha`` in the
+segment: the colours of every surfel whose footprint can cover its centre there and that no surely
+covering surfel always hides, plus the background unless some surfel surely covers it throughout.
+Footprint corners are monotone between the split points of :func:`.motion.split_points` (computed
+sparsely by :func:`split_events`), so their
+ranges over the segment are read at its ends and at those split points, widened by ``EDGE_EPS`` pixels
+for float rounding; depths closer than :func:`.motion.depth_tie_margin` count as ties (both values kept),
+except bitwise-equal depths on the axes that shift every depth alike (tx, ty, tz, rz), which stay equal
+at every pose, so the renderer's lower-index rule decides them there too.
+The block mean is linear with positive weights, so the output pixel of every frame of the segment lies
+in the block means of ``lo`` and ``hi`` (widened by ``VALUE_EPS`` for float32 rounding). Distances to
+any frame ``y`` are then bounded by ``sum max((lo - y)^2, (hi - y)^2)`` (:class:`HullValues`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any, Iterator
+
+import numpy as np
+import torch
+
+from .camera import CameraIntrinsics
+from .cloud import Cloud
+from .errors import PwsError, require
+from .motion import AXES, DEPTH_TIE_REL, depth, depth_tie_margin, parse_axis, project
+from .render import DEFAULT_MAX_ELEMENTS, resolve_device
+
+IMAGING_KINDS = ("surfel", "paper")
+SURFEL_OVERLAP = 0.15   # px each side: see the module doc (neighbours overlap by more than a segment moves)
+SAMPLE_JITTER = 0.33    # px: largest offset of a pixel's sample point from its centre (< 1/2 - SURFEL_OVERLAP)
+EDGE_EPS = 1e-6         # px: float tolerance of a footprint edge in the bounds
+VALUE_EPS = 1e-6        # float32 rounding of a block mean (values in [0, 1])
+SAFETY = 1.0 + 1e-9     # relative margin on float64 sums of squares
+# Axes along which the depth difference of two points does not change with alpha (tz shifts every
+# depth by alpha; tx, ty, rz leave depths alone): one comparison at the segment start orders them.
+CONSTANT_DEPTH_ORDER = ("tx", "ty", "tz", "rz")
+_CORNER_SIGNS = ((-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0))
+
+
+@dataclass(frozen=True)
+class Imaging:
+    """How frames are made for one input camera: ``kind``, the native ``camera`` frames are rendered
+    with (the centred crop for ``surfel``, the rescaled camera for ``paper``), the block-mean
+    ``factor``, the masked ``border`` (output pixels: columns left/right, rows top/bottom) and the
+    ``background`` value; ``source`` is the input camera and ``crop`` the crop's (x0, y0) in it."""
+
+    kind: str
+    camera: CameraIntrinsics
+    factor: int = 1
+    border: tuple[int, int] = (0, 0)
+    background: float = 0.0
+    source: CameraIntrinsics | None = field(default=None, compare=False)  # not sent between nodes
+    crop: tuple[int, int] = (0, 0)
+
+    @property
+    def out_shape(self) -> tuple[int, int]:
+        """(H, W) of the frames handed to the classifier."""
+        return (self.camera.height // self.factor, self.camera.width // self.factor)
+
+    def describe(self) -> str:
+        h, w = self.out_shape
+        if self.kind == "paper":
+            return f"paper imaging (one point per pixel) at {w}x{h}, holes = {self.background:g}"
+        src = self.source or self.camera
+        return (f"surfel imaging: {src.width}x{src.height} camera, centred crop {self.camera.width}x{self.camera.height} "
+                f"at ({self.crop[0]}, {self.crop[1]}), {self.factor}x{self.factor} block mean to {w}x{h}, border "
+                f"{self.border[0]} col / {self.border[1]} row masked, uncovered = {self.background:g}")
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], camera: CameraIntrinsics) -> "Imaging":
+        """The inverse of :meth:`to_dict` given the native ``camera`` (e.g. what crossed a topic)."""
+        try:
+            im = cls(str(d["kind"]), camera, int(d["factor"]), (int(d["border_cols"]), int(d["border_rows"])),
+                     float(d["background"]), None, (int(d["crop_x0"]), int(d["crop_y0"])))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise PwsError(f"malformed imaging description: {exc}") from None
+        require(im.kind in IMAGING_KINDS and im.factor >= 1, f"malformed imaging description: {d}")
+        require(camera.width % im.factor == 0 and camera.height % im.factor == 0,
+                f"imaging factor {im.factor} does not divide the camera {camera.width}x{camera.height}")
+        return im
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "factor": self.factor, "border_cols": self.border[0], "border_rows": self.border[1],
+                "crop_x0": self.crop[0], "crop_y0": self.crop[1], "native_width": self.camera.width,
+                "native_height": self.camera.height, "width": self.out_shape[1], "height": self.out_shape[0],
+                "background": self.background}
+
+
+def make_imaging(kind: str, intr: CameraIntrinsics, model_size: tuple[int, int] | None, *, background: float = 0.0,
+                 border: int = -1, cloud: Cloud | None = None, radii: dict[str, float] | None = None) -> Imaging:
+    """The imaging of camera ``intr`` for a classifier of input ``model_size`` = (H, W) (None: any size).
+
+    ``border`` < 0 computes it from ``cloud`` and the motion ``radii`` ({axis: b}) of the frame
+    (:func:`auto_border`); 0 masks nothing."""
+    require(kind in IMAGING_KINDS, f"unknown imaging model {kind!r}: expected one of {', '.join(IMAGING_KINDS)}")
+    require(math.isfinite(background), f"background must be finite, got {background}")
+    h, w = (intr.height, intr.width) if model_size is None else (int(model_size[0]), int(model_size[1]))
+    if kind == "paper":
+        cam = intr if (h, w) == (intr.height, intr.width) else intr.scaled(w, h)
+        return Imaging("paper", cam, 1, (0, 0), float(background), intr, (0, 0))
+    k = min(intr.width // w, intr.height // h)
+    require(k >= 1, f"camera {intr.width}x{intr.height} is smaller than the classifier's input {w}x{h}: "
+                    f"no crop of the camera image reduces to it (use imaging: paper to rescale, or a model for this size)")
+    x0, y0 = (intr.width - k * w) // 2, (intr.height - k * h) // 2
+    cam = replace(intr, width=k * w, height=k * h, cx=intr.cx - x0, cy=intr.cy - y0)
+    im = Imaging("surfel", cam, k, (0, 0), float(background), intr, (x0, y0))
+    if border < 0:
+        bx, by = auto_border(im, cloud, radii or {}) if cloud is not None else (0, 0)
+    else:
+        bx = by = int(border)
+    require(2 * bx < w and 2 * by < h, f"border {bx}x{by} px masks the whole {w}x{h} image")
+    return replace(im, border=(int(bx), int(by)))
+
+
+def auto_border(im: Imaging, cloud: Cloud, radii: dict[str, float]) -> tuple[int, int]:
+    """Output pixels to mask (columns, rows) so that no point of the crop moves in from beyond the
+    recorded image: the largest displacement of a point seen in the crop over every ``[-b, b]``, less
+    the native pixels available beyond the crop on the narrower side, in output pixels (rounded up)."""
+    src = im.source or im.camera
+    pts = cloud.points[cloud.points[:, 2] > 0]
+    if not len(pts) or not radii:
+        return (0, 0)
+    u0, v0, _ = project(pts, im.camera, "tx", 0.0)
+    seen = (u0 >= 0) & (u0 < im.camera.width) & (v0 >= 0) & (v0 < im.camera.height)
+    pts, u0, v0 = pts[seen], u0[seen], v0[seen]
+    if not len(pts):
+        return (0, 0)
+    du = dv = 0.0
+    for axis, b in radii.items():
+        for a in (-float(b), float(b)):
+            u, v, d = project(pts, im.camera, parse_axis(axis), a)
+            ok = d > 0
+            if ok.any():
+                du = max(du, float(np.max(np.abs(u[ok] - u0[ok]))))
+                dv = max(dv, float(np.max(np.abs(v[ok] - v0[ok]))))
+    spare_x = min(im.crop[0], src.width - im.crop[0] - im.camera.width)
+    spare_y = min(im.crop[1], src.height - im.crop[1] - im.camera.height)
+    k = im.factor
+    return (int(math.ceil(max(0.0, du - spare_x) / k)), int(math.ceil(max(0.0, dv - spare_y) / k)))
+
+
+class SurfelRenderer:
+    """Renders frames of the surfel model for batches of motion values (torch, float64 geometry).
+
+    Same interface as :class:`.render.Renderer`: ``render_batch(alphas)`` and ``iter_frames``; frames are
+    ``(B, H, W, 3)`` float32 at the classifier's input size (the reduced, border-masked image). With
+    ``alpha_range``, surfels that no motion in that range can bring into the image are left out at once
+    (only motions inside the range may then be rendered)."""
+
+    def __init__(self, cloud: Cloud, imaging: Imaging, axis: str, *, device: str | torch.device | None = "cpu",
+                 max_elements: int = DEFAULT_MAX_ELEMENTS, alpha_range: tuple[float, float] | None = None):
+        require(imaging.kind == "surfel", "SurfelRenderer needs surfel imaging")
+        self.axis = parse_axis(axis)
+        self.imaging = imaging
+        self.intr = imaging.camera
+        self.background = float(imaging.background)
+        self.device = resolve_device(device)
+        self.max_elements = int(max_elements)
+        self.samples = SamplePoints(self.intr.height, self.intr.width, self.device)
+        self._set_points(np.asarray(cloud.points, dtype=np.float64), np.asarray(cloud.colors, np.float32))
+        if alpha_range is not None:
+            # drop the surfels no pose of the range can show (in order: the tie rule is unchanged)
+            keep = _HullSweep(self, *alpha_range).maybe_visible(*alpha_range)
+            if not keep.all():
+                self._set_points(self.points_np[keep], self.colors_np[keep])
+
+    def _set_points(self, pts: np.ndarray, colors: np.ndarray) -> None:
+        self.num_points = len(pts)
+        self.points_np, self.colors_np = pts, colors
+        self.corners_np = surfel_corners(pts, self.intr)                     # (4, P, 3)
+        self.points = torch.as_tensor(pts, device=self.device)
+        self.corners = torch.as_tensor(self.corners_np, device=self.device)
+        bg = np.full((1, 3), self.background, dtype=np.float32)
+        self.colors = torch.as_tensor(np.concatenate([colors, bg]), device=self.device)
+
+    @property
+    def chunk_size(self) -> int:
+        return max(1, self.max_elements // max(1, 4 * self.num_points))
+
+    def footprints(self, alphas: torch.Tensor):
+        """Footprint boxes ``umin, umax, vmin, vmax``, centre depth and drawn mask, each (B, P)."""
+        u, v, d = project(self.corners[None], self.intr, self.axis, alphas[:, None, None], xp=torch)  # (B, 4, P)
+        zc = depth(self.points[None], self.axis, alphas[:, None], xp=torch)                          # (B, P)
+        drawn = (d > 0).all(dim=1) & (zc > 0)
+        return u.amin(1), u.amax(1), v.amin(1), v.amax(1), zc, drawn
+
+    def _winners(self, alphas: torch.Tensor) -> torch.Tensor:
+        """Index of the surfel each native pixel shows (``num_points`` = background), (B, Hn, Wn)."""
+        H, W = self.intr.height, self.intr.width
+        B, n = alphas.shape[0], self.num_points
+        idx = torch.full((B * H * W,), n, dtype=torch.long, device=self.device)
+        if n == 0:
+            return idx.view(B, H, W)
+        umin, umax, vmin, vmax, zc, drawn = self.footprints(alphas)
+        b_i, p_i, pix = covered_pairs(umin, umax, vmin, vmax, drawn, self.samples, 0.0)
+        if not len(p_i):
+            return idx.view(B, H, W)
+        key = b_i * (H * W) + pix
+        zz = zc[b_i, p_i]
+        zmin = torch.full((B * H * W,), float("inf"), dtype=torch.float64, device=self.device)
+        zmin.scatter_reduce_(0, key, zz, reduce="amin", include_self=True)
+        at_min = zz == zmin[key]
+        idx.scatter_reduce_(0, key[at_min], p_i[at_min], reduce="amin", include_self=True)
+        return idx.view(B, H, W)
+
+    def render_native(self, alphas) -> torch.Tensor:
+        """Native-resolution frames (B, Hn, Wn, 3) float32, before reduction and border."""
+        a = _alphas(alphas, self.device)
+        return torch.cat([self.colors[self._winners(a[s:s + self.chunk_size])]
+                          for s in range(0, len(a), self.chunk_size)]) if len(a) else \
+            torch.empty((0, self.intr.height, self.intr.width, 3), dtype=torch.float32, device=self.device)
+
+    def render_batch(self, alphas) -> torch.Tensor:
+        """Frames ``(B, H, W, 3)`` float32 as handed to the noise (reduced, border masked)."""
+        a = _alphas(alphas, self.device)
+        out = [reduce_frames(self.colors[self._winners(a[s:s + self.chunk_size])], self.imaging)
+               for s in range(0, len(a), self.chunk_size)]
+        if not out:
+            h, w = self.imaging.out_shape
+            return torch.empty((0, h, w, 3), dtype=torch.float32, device=self.device)
+        return torch.cat(out)
+
+    def iter_frames(self, alphas, chunk: int | None = None) -> Iterator[tuple[int, torch.Tensor]]:
+        alphas = np.asarray(alphas, dtype=np.float64).reshape(-1)
+        step = int(chunk or max(1, min(64, self.chunk_size)))
+        for s in range(0, len(alphas), step):
+            yield s, self.render_batch(alphas[s:s + step])
+
+
+def surfel_corners(points: np.ndarray, intr: CameraIntrinsics) -> np.ndarray:
+    """The four corners ``(4, P, 3)`` of every surfel (see module doc); a point at depth <= 0 has a
+    surfel of size 0."""
+    z = np.maximum(points[:, 2], 0.0)
+    hx = (0.5 + SURFEL_OVERLAP) * z / intr.fx
+    hy = (0.5 + SURFEL_OVERLAP) * z / intr.fy
+    out = np.repeat(points[None], 4, axis=0).copy()
+    for k, (sx, sy) in enumerate(_CORNER_SIGNS):
+        out[k, :, 0] += sx * hx
+        out[k, :, 1] += sy * hy
+    return out
+
+
+def _alphas(alphas, device) -> torch.Tensor:
+    a = torch.as_tensor(np.asarray(alphas, dtype=np.float64), device=device).reshape(-1)
+    require(bool(torch.all(torch.isfinite(a))), "motion values must be finite")
+    return a
+
+
+class SamplePoints:
+    """Where each native pixel samples the footprints: its centre ``(c + 1/2, r + 1/2)`` moved by a fixed
+    offset of at most SAMPLE_JITTER pixels per coordinate (a deterministic low-discrepancy pattern).
+
+    At ``alpha = 0`` the offset changes nothing (a sample stays inside its own surfel and outside its
+    neighbours'), but under motion the pixels of a uniformly shifted surface hand over at different
+    instants instead of all at once, so the image changes gradually and no single pose change is a jump
+    of the whole picture by a pixel."""
+
+    def __init__(self, H: int, W: int, device):
+        r, c = np.mgrid[0:H, 0:W]
+        g = 1.32471795724474602596  # the plastic number: R2 sequence
+        jx = SAMPLE_JITTER * (2.0 * np.mod(0.5 + (r * W + c) / g, 1.0) - 1.0)
+        jy = SAMPLE_JITTER * (2.0 * np.mod(0.5 + (r * W + c) / (g * g), 1.0) - 1.0)
+        self.W, self.H = W, H
+        self.su = torch.as_tensor((c + 0.5 + jx).reshape(-1), device=device)
+        self.sv = torch.as_tensor((r + 0.5 + jy).reshape(-1), device=device)
+
+
+SMALL_BOX = 4  # boxes up to this many pixels a side are enumerated offset by offset (the common case)
+
+
+def covered_pairs(umin, umax, vmin, vmax, mask, samples: SamplePoints, eps: float):
+    """(batch, point, pixel) of every native pixel whose sample point lies in the box
+    ``[umin - eps, umax + eps) x [vmin - eps, vmax + eps)`` of a point where ``mask`` (arrays (B, P);
+    ``eps`` < 0 shrinks the boxes)."""
+    W, H = samples.W, samples.H
+    B, P = umin.shape
+    c0 = torch.ceil(umin - eps - 0.5 - SAMPLE_JITTER).clamp(0, W).long()
+    c1 = torch.maximum(torch.ceil(umax + eps - 0.5 + SAMPLE_JITTER).clamp(0, W).long(), c0)
+    r0 = torch.ceil(vmin - eps - 0.5 - SAMPLE_JITTER).clamp(0, H).long()
+    r1 = torch.maximum(torch.ceil(vmax + eps - 0.5 + SAMPLE_JITTER).clamp(0, H).long(), r0)
+    nc, nr = (c1 - c0).view(-1), (r1 - r0).view(-1)
+    mask = mask.reshape(-1)
+    small = mask & (nc <= SMALL_BOX) & (nr <= SMALL_BOX)
+    flats, pixs = [], []
+    for dr in range(SMALL_BOX):
+        okr = small & (nr > dr)
+        for dc in range(SMALL_BOX):
+            f = torch.nonzero(okr & (nc > dc), as_tuple=True)[0]
+            if not len(f):
+                break
+            flats.append(f)
+            pixs.append((r0.view(-1)[f] + dr) * W + c0.view(-1)[f] + dc)
+    big = torch.nonzero(mask & ~small, as_tuple=True)[0]
+    if len(big):  # large boxes (a point near the camera plane, long sweeps): enumerate each
+        cnt = nc[big] * nr[big]
+        rep = torch.repeat_interleave(torch.arange(len(big), device=c0.device), cnt)
+        t = torch.arange(int(cnt.sum()), device=c0.device) - (torch.cumsum(cnt, 0) - cnt)[rep]
+        f = big[rep]
+        ncr = nc[f]
+        flats.append(f)
+        pixs.append((r0.view(-1)[f] + torch.div(t, ncr, rounding_mode="floor")) * W + c0.view(-1)[f] + t % ncr)
+    if not flats:
+        z = torch.zeros(0, dtype=torch.long, device=c0.device)
+        return z, z, z
+    f, pix = torch.cat(flats), torch.cat(pixs)
+    su, sv = samples.su[pix], samples.sv[pix]
+    ok = ((umin.reshape(-1)[f] - eps <= su) & (su < umax.reshape(-1)[f] + eps)
+          & (vmin.reshape(-1)[f] - eps <= sv) & (sv < vmax.reshape(-1)[f] + eps))
+    f, pix = f[ok], pix[ok]
+    return torch.div(f, P, rounding_mode="floor"), f % P, pix
+
+
+def reduce_frames(native: torch.Tensor, imaging: Imaging) -> torch.Tensor:
+    """Exact ``k x k`` block mean (float64, then float32) of native frames (B, Hn, Wn, 3) and the border."""
+    return _block_mean64(native.to(torch.float64), imaging).to(torch.float32)
+
+
+def make_renderer(cloud: Cloud, imaging: Imaging, axis: str, *, device: str | torch.device | None = "cpu"):
+    """The renderer of ``imaging``: :class:`SurfelRenderer` or the paper model's :class:`.render.Renderer`."""
+    if imaging.kind == "surfel":
+        return SurfelRenderer(cloud, imaging, axis, device=device)
+    from .render import Renderer
+
+    return Renderer(cloud, imaging.camera, axis, background=imaging.background, device=device)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Bounds
+
+
+@dataclass
+class HullValues:
+    """Per segment ``i`` of ``alphas`` and output pixel/channel, ``lo[i] <= x(alpha) <= hi[i]`` for every
+    ``alpha`` in ``[alphas[i], alphas[i+1]]`` (float32, already widened for rounding)."""
+
+    alphas: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    constant: np.ndarray   # (S, H, W): the pixel shows one value throughout the segment (bitwise)
+    details: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def num_segments(self) -> int:
+        return len(self.alphas) - 1
+
+    def dist_sq(self, y: np.ndarray, segments: slice | np.ndarray | None = None) -> np.ndarray:
+        """``D_i(y)^2 = sum max((lo - y)^2, (hi - y)^2)``: ``|x(alpha) - y|^2 <= D_i(y)^2`` on segment ``i``."""
+        sel = slice(None) if segments is None else segments
+        y = _as64(y)
+        lo, hi = self.lo[sel].astype(np.float64), self.hi[sel].astype(np.float64)
+        m = np.maximum((lo - y) ** 2, (hi - y) ** 2)
+        return m.reshape(m.shape[0], -1).sum(axis=1) * SAFETY
+
+    def pair_bound_sq(self, frames, k0: int = 0) -> np.ndarray:
+        """``|x(alpha) - x_i|^2 + |x(alpha) - x_{i+1}|^2`` bounds for segments ``k0 .. k0 + len(frames) - 2``."""
+        f = _as64(frames)
+        a, b = f[:-1], f[1:]
+        sl = slice(k0, k0 + len(a))
+        lo, hi = self.lo[sl].astype(np.float64), self.hi[sl].astype(np.float64)
+        m = np.maximum((lo - a) ** 2 + (lo - b) ** 2, (hi - a) ** 2 + (hi - b) ** 2)
+        return m.reshape(m.shape[0], -1).sum(axis=1) * SAFETY
+
+    def anchor_dist_sq(self, frames, anchor, k0: int = 0) -> np.ndarray:
+        """``D_i(anchor)^2`` for segments ``k0 .. k0 + len(frames) - 2`` (same interface as
+        :class:`.bounds.SegmentValues`; only the number of frames is used)."""
+        return self.dist_sq(anchor, slice(k0, k0 + len(frames) - 1))
+
+
+    def to_segment_values(self, frames: np.ndarray):
+        """The same bounds as sparse extra values (:class:`.bounds.SegmentValues`, the format that crosses
+        the topics of the four-process mode): the 8 corners of the box ``[lo, hi]`` of every output
+        pixel that is not constant over the segment (a convex distance is largest at a corner, so the
+        maximum over the corners is the maximum over the box); a constant pixel shows the end frames'
+        value throughout and needs none."""
+        from .bounds import SegmentValues
+
+        S = self.num_segments
+        lo, hi = self.lo.reshape(S, -1, 3), self.hi.reshape(S, -1, 3)
+        seg, pix = np.nonzero(~self.constant.reshape(S, -1))
+        segs, pixs, vals = [], [], []
+        for corner in range(8):
+            pick = [(corner >> ch) & 1 for ch in range(3)]
+            v = np.stack([(hi if pick[ch] else lo)[seg, pix, ch] for ch in range(3)], axis=1)
+            segs.append(seg)
+            pixs.append(pix)
+            vals.append(v)
+        seg_e, pix_e, val_e = np.concatenate(segs), np.concatenate(pixs), np.concatenate(vals)
+        order = np.lexsort((pix_e, seg_e))
+        h, w = self.lo.shape[1:3]
+        return SegmentValues(np.asarray(self.alphas), seg_e[order], pix_e[order], val_e[order].astype(np.float32), (h, w))
+
+
+def render_plan_surfel(cloud: Cloud, imaging: Imaging, plan, device: str = "cpu"):
+    """Frames and bounds of a plan with the surfel model as a :class:`.bounds.RenderedPlan` (what the
+    projector node publishes; the bounds as :meth:`HullValues.to_segment_values`)."""
+    import time
+
+    from .bounds import RenderedPlan
+    from .partition import validate_grid
+
+    t0 = time.perf_counter()
+    validate_grid(plan.alphas, plan.radius)
+    cloud.require_nonempty()
+    r = SurfelRenderer(cloud, imaging, plan.axis, device=device, alpha_range=(float(plan.alphas[0]), float(plan.alphas[-1])))
+    frames = r.render_batch(plan.alphas)
+    hulls = segment_hulls(r, plan.alphas)
+    f = frames.cpu().numpy()
+    return RenderedPlan(plan, frames, hulls.pair_bound_sq(f), hulls.to_segment_values(f), time.perf_counter() - t0)
+
+
+def _as64(x) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x, dtype=np.float64)
+
+
+def segment_hulls(renderer: SurfelRenderer, alphas, *, max_bytes: int = 1 << 30) -> HullValues:
+    """The per-segment value intervals of the surfel model for the grid ``alphas`` (see module doc)."""
+    alphas = np.asarray(alphas, dtype=np.float64)
+    S = len(alphas) - 1
+    require(S >= 1, "a plan needs at least two motion values")
+    h, w = renderer.imaging.out_shape
+    need = 2 * S * h * w * 3 * 4
+    require(need <= max_bytes, f"bounds of {S} segments at {w}x{h} need {need / 2**20:.0f} MiB, more than "
+                               f"{max_bytes / 2**20:.0f} MiB: use fewer partitions")
+    lo = np.empty((S, h, w, 3), np.float32)
+    hi = np.empty((S, h, w, 3), np.float32)
+    constant = np.empty((S, h, w), bool)
+    sweep = _HullSweep(renderer, float(alphas[0]), float(alphas[-1]))
+    for i in range(S):
+        lo[i], hi[i], constant[i] = sweep.segment(float(alphas[i]), float(alphas[i + 1]))
+    return HullValues(alphas, lo, hi, constant, {"surfels": renderer.num_points, "segments": S})
+
+
+def split_events(points: np.ndarray, axis: str, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
+    """The split points of :func:`.motion.split_points` inside ``(lo, hi)`` as sparse (point index, alpha)
+    pairs sorted by alpha (cheap for the short motion ranges of a certificate)."""
+    X, Y, Z = points[:, 0], points[:, 1], points[:, 2]
+    if axis == "tz":
+        pairs = [(Z, None)]
+    elif axis == "rz":
+        pairs = [(np.arctan2(Y, X), 0.0), (np.arctan2(Y, X), 0.5 * math.pi), (np.arctan2(-X, Y), 0.0), (np.arctan2(-X, Y), 0.5 * math.pi)]
+    elif axis == "rx":
+        pairs = [(np.arctan2(-Y, Z), 0.0), (np.arctan2(-Y, Z), 0.5 * math.pi)]
+    elif axis == "ry":
+        pairs = [(np.arctan2(X, Z), 0.0), (np.arctan2(X, Z), 0.5 * math.pi)]
+    else:
+        pairs = []
+    idx, ts = [], []
+    for base, offset in pairs:
+        for k in ((0,) if offset is None else range(-3, 4)):
+            t = base if offset is None else base + offset + k * math.pi
+            m = np.nonzero((t > lo) & (t < hi))[0]
+            idx.append(m)
+            ts.append(t[m])
+    if not idx:
+        return np.zeros(0, np.int64), np.zeros(0)
+    i, t = np.concatenate(idx), np.concatenate(ts)
+    order = np.argsort(t, kind="stable")
+    return i[order].astype(np.int64), t[order]
+
+
+class _HullSweep:
+    """Evaluates the surfel footprints segment after segment (each grid point is computed once)."""
+
+    def __init__(self, r: SurfelRenderer, lo: float, hi: float):
+        self.r = r
+        self.P = r.num_points
+        corners = r.corners_np.reshape(-1, 3)
+        self.corner_ev = split_events(corners, r.axis, lo, hi)      # corner u, v, depth extrema
+        self.centre_ev = split_events(r.points_np, r.axis, lo, hi)  # centre depth extrema
+        self._end: tuple | None = None
+
+    def _eval(self, a: float):
+        r = self.r
+        t = torch.tensor([a], dtype=torch.float64, device=r.device)
+        u, v, d = project(r.corners[None], r.intr, r.axis, t[:, None, None], xp=torch)
+        zc = depth(r.points[None], r.axis, t[:, None], xp=torch)
+        return u[0], v[0], d[0], zc[0]
+
+    def _at(self, a: float):
+        if self._end is not None and self._end[0] == a:
+            return self._end[1:]
+        return self._eval(a)
+
+    @staticmethod
+    def _inside(ev, a: float, b: float, device):
+        i, t = ev
+        s, e = np.searchsorted(t, a, side="right"), np.searchsorted(t, b, side="left")
+        return torch.as_tensor(i[s:e], device=device), torch.as_tensor(t[s:e], device=device)
+
+    def ranges(self, a: float, b: float, keep_end: bool = True):
+        """Per surfel over ``[a, b]``: the range of every corner's ``u`` and ``v`` (4, P), the least corner
+        depth (4, P), the centre depth range (P,) and the centre depth at ``a``."""
+        r = self.r
+        ua, va, da, za = self._at(a)
+        ub, vb, db, zb = self._at(b)
+        u_lo, u_hi = torch.minimum(ua, ub).reshape(-1), torch.maximum(ua, ub).reshape(-1)   # per corner (4 P)
+        v_lo, v_hi = torch.minimum(va, vb).reshape(-1), torch.maximum(va, vb).reshape(-1)
+        d_lo = torch.minimum(da, db).reshape(-1)                                           # corner depth
+        z_lo, z_hi = torch.minimum(za, zb), torch.maximum(za, zb)                          # centre depth (P,)
+        flat, t = self._inside(self.corner_ev, a, b, r.device)
+        if len(flat):
+            uu, vv, dd = project(r.corners.reshape(-1, 3)[flat], r.intr, r.axis, t, xp=torch)
+            u_lo = u_lo.scatter_reduce(0, flat, uu, "amin")
+            u_hi = u_hi.scatter_reduce(0, flat, uu, "amax")
+            v_lo = v_lo.scatter_reduce(0, flat, vv, "amin")
+            v_hi = v_hi.scatter_reduce(0, flat, vv, "amax")
+            d_lo = d_lo.scatter_reduce(0, flat, dd, "amin")
+        p, t = self._inside(self.centre_ev, a, b, r.device)
+        if len(p):
+            zz = depth(r.points[p], r.axis, t, xp=torch)
+            z_lo = z_lo.scatter_reduce(0, p, zz, "amin")
+            z_hi = z_hi.scatter_reduce(0, p, zz, "amax")
+        self._end = (b, ub, vb, db, zb) if keep_end else None
+        P = self.P
+        return u_lo.view(4, P), u_hi.view(4, P), v_lo.view(4, P), v_hi.view(4, P), d_lo.view(4, P), z_lo, z_hi, za
+
+    def segment(self, a: float, b: float) -> tuple[np.ndarray, np.ndarray]:
+        return self._bound(*self.ranges(a, b))
+
+    def maybe_visible(self, a: float, b: float) -> np.ndarray:
+        """Surfels that can cover a native pixel for some alpha in ``[a, b]`` (a superset)."""
+        u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi, _ = self.ranges(a, b, keep_end=False)
+        H, W = self.r.intr.height, self.r.intr.width
+        wild = (z_hi > 0) & ~((d_lo > 0).all(0) & (z_lo > 0))
+        inside = (u_hi.amax(0) >= -1) & (u_lo.amin(0) <= W + 1) & (v_hi.amax(0) >= -1) & (v_lo.amin(0) <= H + 1)
+        return ((z_hi > 0) & (inside | wild)).cpu().numpy()
+
+    def _bound(self, u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi, za):
+        r = self.r
+        H, W = r.intr.height, r.intr.width
+        dev = r.device
+        # a surfel is drawn at alpha iff every corner and its centre are in front of the camera
+        sure_drawn = (d_lo > 0).all(0) & (z_lo > 0)
+        maybe = z_hi > 0
+        # where a corner may cross depth 0 its projection is unbounded: the whole image
+        wild = maybe & ~sure_drawn
+        sw_u0, sw_u1 = u_lo.amin(0), u_hi.amax(0)
+        sw_v0, sw_v1 = v_lo.amin(0), v_hi.amax(0)
+        big = float(max(H, W)) + 10.0
+        sw_u0 = torch.where(wild, torch.full_like(sw_u0, -big), sw_u0)
+        sw_u1 = torch.where(wild, torch.full_like(sw_u1, big), sw_u1)
+        sw_v0 = torch.where(wild, torch.full_like(sw_v0, -big), sw_v0)
+        sw_v1 = torch.where(wild, torch.full_like(sw_v1, big), sw_v1)
+        # surely covered: left edge at its rightmost, right edge at its leftmost (module doc)
+        su0, su1 = u_hi.amin(0), u_lo.amax(0)
+        sv0, sv1 = v_hi.amin(0), v_lo.amax(0)
+        if r.axis in CONSTANT_DEPTH_ORDER:
+            key_near, key_far = za, za
+        else:
+            key_near, key_far = z_lo, z_hi
+        # nearest depth any surely covering surfel can have, per native pixel
+        _, sp, spix = covered_pairs(su0[None], su1[None], sv0[None], sv1[None], sure_drawn[None], r.samples, -EDGE_EPS)
+        sure_far = torch.full((H * W,), float("inf"), dtype=torch.float64, device=dev)
+        if len(sp):
+            sure_far.scatter_reduce_(0, spix, key_far[sp], reduce="amin", include_self=True)
+        # candidates: possibly covering, not always behind the sure one (ties count)
+        _, cp, cpix = covered_pairs(sw_u0[None], sw_u1[None], sw_v0[None], sw_v1[None], maybe[None], r.samples, EDGE_EPS)
+        limit = sure_far[cpix]
+        keep = key_near[cp] <= limit + depth_tie_margin(limit.clamp(max=1e300), xp=torch)
+        if r.axis in CONSTANT_DEPTH_ORDER and len(sp):
+            # bitwise-equal depths stay equal at every alpha on these axes (the same float operation on the
+            # same inputs), so the renderer's lower-index rule decides them: a later point never shows
+            big = torch.iinfo(torch.long).max
+            first = torch.full((H * W,), big, dtype=torch.long, device=dev)
+            tied = key_far[sp] == sure_far[spix]
+            first.scatter_reduce_(0, spix[tied], sp[tied], reduce="amin", include_self=True)
+            keep &= ~((key_near[cp] == limit) & (cp > first[cpix]))
+        cp, cpix = cp[keep], cpix[keep]
+        col = r.colors[:-1].to(torch.float64)
+        bg = float(r.background)
+        open_ = torch.isinf(sure_far)
+        inf = torch.full((H * W,), float("inf"), dtype=torch.float64, device=dev)
+        bgv = torch.full_like(inf, bg)
+        lo = torch.where(open_, bgv, inf)[:, None].repeat(1, 3)
+        hi = torch.where(open_, bgv, -inf)[:, None].repeat(1, 3)
+        if len(cp):
+            idx = cpix[:, None].expand(-1, 3)
+            lo.scatter_reduce_(0, idx, col[cp], reduce="amin", include_self=True)
+            hi.scatter_reduce_(0, idx, col[cp], reduce="amax", include_self=True)
+        require(bool(torch.isfinite(lo).all() and torch.isfinite(hi).all()), "internal: a pixel without any value")
+        im = r.imaging
+        lo_o = _block_mean64(lo.view(1, H, W, 3), im) - VALUE_EPS
+        hi_o = _block_mean64(hi.view(1, H, W, 3), im) + VALUE_EPS
+        # output pixels whose every native pixel has one value throughout: bitwise constant over the segment
+        k = im.factor
+        h, w = im.out_shape
+        one = (lo == hi).all(dim=1).view(h, k, w, k).all(dim=3).all(dim=1)
+        bx, by = im.border
+        if bx:
+            one[:, :bx] = one[:, w - bx:] = True
+        if by:
+            one[:by] = one[h - by:] = True
+        return (lo_o[0].cpu().numpy().astype(np.float32), hi_o[0].cpu().numpy().astype(np.float32),
+                one.cpu().numpy())
+
+
+def _block_mean64(x: torch.Tensor, im: Imaging) -> torch.Tensor:
+    """Block mean of float64 native images (B, Hn, Wn, 3) to the output size, border set to background."""
+    k = im.factor
+    h, w = im.out_shape
+    out = x.view(x.shape[0], h, k, w, k, 3).mean(dim=(2, 4)) if k > 1 else x.clone()
+    bx, by = im.border
+    if bx:
+        out[:, :, :bx] = im.background
+        out[:, :, w - bx:] = im.background
+    if by:
+        out[:, :by] = im.background
+        out[:, h - by:] = im.background
+    return out
+
+
+__all__ = ["AXES", "DEPTH_TIE_REL", "EDGE_EPS", "HullValues", "IMAGING_KINDS", "Imaging", "SURFEL_OVERLAP",
+           "SurfelRenderer", "auto_border", "make_imaging", "make_renderer", "reduce_frames", "render_plan_surfel",
+           "segment_hulls", "surfel_corners"]

@@ -1,0 +1,252 @@
+"""The surfel imaging model (pws_ros.core.imaging) against an independent brute force.
+
+The reference below re-implements the model from its written definition (module doc of
+core/imaging.py) with plain Python loops in float64: surfel corners, projection P' = R^T (P - t),
+axis-aligned footprint of the four projected corners, one sample point per native pixel (centre plus
+the documented R2 offset), nearest centre depth wins, exact ties to the lower index, background where
+nothing covers, k x k block mean, masked border. It imports nothing from the production renderer or
+bounds, only data classes.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pws_ros.core.anchors import place_anchors, refine_plan
+from pws_ros.core.camera import CameraIntrinsics
+from pws_ros.core.cloud import Cloud, cloud_from_rgbd
+from pws_ros.core.errors import PwsError
+from pws_ros.core.imaging import SurfelRenderer, make_imaging, segment_hulls
+from pws_ros.core.partition import Plan, make_grid
+
+AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
+SCALE = {"tx": 0.03, "ty": 0.03, "tz": 0.05, "rx": 0.03, "ry": 0.03, "rz": 0.06}
+CAM = CameraIntrinsics(8, 6, 7.0, 7.5, 3.5, 2.5, "cam")   # native 8x6, model 4x3: factor 2
+OVERLAP, JITTER, PLASTIC = 0.15, 0.33, 1.32471795724474602596  # from the documented model
+
+
+def rot_t(axis: str, a: float):
+    """R^T and t of the moved camera (written out, not imported)."""
+    c, s = math.cos(a), math.sin(a)
+    t = [0.0, 0.0, 0.0]
+    if axis[0] == "t":
+        t["xyz".index(axis[1])] = a
+        return [[1, 0, 0], [0, 1, 0], [0, 0, 1]], t
+    if axis == "rx":
+        R = [[1, 0, 0], [0, c, -s], [0, s, c]]
+    elif axis == "ry":
+        R = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    else:
+        R = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    return [[R[j][i] for j in range(3)] for i in range(3)], t
+
+
+def reference_native(points, colors, cam, axis, a, background):
+    """Native image (H, W, 3) of the surfel model, loops only."""
+    H, W = cam.height, cam.width
+    RT, t = rot_t(axis, a)
+    best = [[(math.inf, -1) for _ in range(W)] for _ in range(H)]
+    for i, (X, Y, Z) in enumerate(points):
+        zz = max(Z, 0.0)
+        hx, hy = (0.5 + OVERLAP) * zz / cam.fx, (0.5 + OVERLAP) * zz / cam.fy
+        us, vs, ok = [], [], True
+        for sx, sy in ((-1, -1), (1, -1), (-1, 1), (1, 1)):
+            q = [X + sx * hx - t[0], Y + sy * hy - t[1], Z - t[2]]
+            p = [sum(RT[r][k] * q[k] for k in range(3)) for r in range(3)]
+            if p[2] <= 0:
+                ok = False
+                break
+            us.append(cam.fx * p[0] / p[2] + cam.cx + 0.5)
+            vs.append(cam.fy * p[1] / p[2] + cam.cy + 0.5)
+        q = [X - t[0], Y - t[1], Z - t[2]]
+        d = sum(RT[2][k] * q[k] for k in range(3))
+        if not ok or d <= 0:
+            continue
+        for r in range(H):
+            for c in range(W):
+                k = r * W + c
+                su = c + 0.5 + JITTER * (2 * ((0.5 + k / PLASTIC) % 1.0) - 1)
+                sv = r + 0.5 + JITTER * (2 * ((0.5 + k / PLASTIC ** 2) % 1.0) - 1)
+                if min(us) <= su < max(us) and min(vs) <= sv < max(vs) and (d, i) < best[r][c]:
+                    best[r][c] = (d, i)
+    img = np.full((H, W, 3), background, dtype=np.float64)
+    for r in range(H):
+        for c in range(W):
+            if best[r][c][1] >= 0:
+                img[r, c] = colors[best[r][c][1]]
+    return img
+
+
+def reference_frame(points, colors, im, axis, a):
+    nat = reference_native(points, colors, im.camera, axis, a, im.background)
+    k = im.factor
+    h, w = im.out_shape
+    out = nat.reshape(h, k, w, k, 3).mean(axis=(1, 3))
+    bx, by = im.border
+    if bx:
+        out[:, :bx] = out[:, w - bx:] = im.background
+    if by:
+        out[:by] = out[h - by:] = im.background
+    return out
+
+
+def random_cloud(rng, ties: bool) -> Cloud:
+    """A depth image of CAM back-projected (holes included), plus stray points; with ``ties``, copies of
+    points at the same depth or a few ulps away (what quantised real depth is full of)."""
+    depth = rng.uniform(0.8, 1.6, CAM.shape)
+    depth[rng.random(CAM.shape) < 0.15] = 0.0
+    if rng.random() < 0.5:
+        depth[:, : CAM.width // 2] = 1.0  # a flat patch: equal depths
+    cloud = cloud_from_rgbd(depth, rng.random(CAM.shape + (3,)).astype(np.float32), CAM)
+    pts, cols = cloud.points, cloud.colors
+    extra = rng.uniform([-0.6, -0.5, 0.7], [0.6, 0.5, 1.8], (4, 3))
+    pts, cols = np.concatenate([pts, extra]), np.concatenate([cols, rng.random((4, 3)).astype(np.float32)])
+    if ties:
+        k = rng.integers(1, 6)
+        idx = rng.choice(len(pts), k)
+        scale = 1.0 + rng.integers(-3, 4, k)[:, None] * np.finfo(np.float64).eps
+        dup = pts[idx] * scale
+        dup[:, 2] = np.where(rng.random(k) < 0.5, pts[idx, 2], dup[:, 2])  # equal depth, or a few ulps off
+        pts = np.concatenate([pts, dup])
+        cols = np.concatenate([cols, rng.random((k, 3)).astype(np.float32)])
+        perm = rng.permutation(len(pts))
+        pts, cols = pts[perm], cols[perm]
+    return Cloud(pts, cols)
+
+
+def test_alpha_zero_re_renders_the_camera_image_exactly():
+    rng = np.random.default_rng(1)
+    cam = CameraIntrinsics(64, 48, 60.0, 60.0, 31.5, 23.5, "cam")
+    depth = rng.uniform(0.8, 2.0, cam.shape)
+    depth[rng.random(cam.shape) < 0.1] = 0.0
+    rgb = rng.random(cam.shape + (3,)).astype(np.float32)
+    cloud = cloud_from_rgbd(depth, rgb, cam)
+    im = make_imaging("surfel", cam, (12, 16), background=0.25, border=0)
+    assert im.factor == 4 and (im.camera.width, im.camera.height) == (64, 48)
+    frame = SurfelRenderer(cloud, im, "ry").render_batch([0.0])[0].numpy().astype(np.float64)
+    expect = np.where((depth > 0)[..., None], rgb, 0.25).reshape(12, 4, 16, 4, 3).mean(axis=(1, 3))
+    np.testing.assert_allclose(frame, expect, atol=1e-7)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), axis=st.sampled_from(AXES), ties=st.booleans(),
+       border=st.sampled_from([0, 1]), background=st.sampled_from([0.0, 0.5]))
+def test_renderer_equals_the_brute_force(seed, axis, ties, border, background):
+    rng = np.random.default_rng(seed)
+    cloud = random_cloud(rng, ties)
+    im = make_imaging("surfel", CAM, (3, 4), background=background, border=border)
+    alphas = np.concatenate([[0.0], rng.uniform(-1, 1, 2) * SCALE[axis]])
+    frames = SurfelRenderer(cloud, im, axis).render_batch(alphas).numpy()
+    for f, a in zip(frames, alphas):
+        np.testing.assert_allclose(f, reference_frame(cloud.points, cloud.colors, im, axis, a), atol=1e-6)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), axis=st.sampled_from(AXES), ties=st.booleans(), nseg=st.integers(1, 4))
+def test_segment_bounds_hold_for_dense_alphas(seed, axis, ties, nseg):
+    """Every frame of a segment (brute force at its ends, their float neighbours and 12 interior poses)
+    lies inside the per-pixel bounds, so no distance bound can be exceeded."""
+    rng = np.random.default_rng(seed)
+    cloud = random_cloud(rng, ties)
+    im = make_imaging("surfel", CAM, (3, 4), background=0.5, border=0)
+    b = SCALE[axis] * rng.uniform(0.2, 1.0)
+    alphas = make_grid(b, b / nseg)
+    hulls = segment_hulls(SurfelRenderer(cloud, im, axis), alphas)
+    y = rng.random((3, 4, 3))
+    for i in range(len(alphas) - 1):
+        lo, hi = alphas[i], alphas[i + 1]
+        poses = [lo, hi, np.nextafter(lo, hi), np.nextafter(hi, lo), *rng.uniform(lo, hi, 12)]
+        for a in poses:
+            f = reference_frame(cloud.points, cloud.colors, im, axis, a)
+            assert np.all(f >= hulls.lo[i] - 1e-7) and np.all(f <= hulls.hi[i] + 1e-7), (axis, i, a)
+            assert ((f - y) ** 2).sum() <= hulls.dist_sq(y)[i]
+
+
+def test_bounds_are_tight_where_nothing_changes():
+    """A fronto-parallel wall moving along tz by a fraction of a pixel: the hull of each segment is the
+    two end frames (within float margins), not the background."""
+    cam = CameraIntrinsics(16, 12, 14.0, 14.0, 7.5, 5.5, "cam")
+    rgb = np.tile(np.linspace(0, 1, 16, dtype=np.float32)[None, :, None], (12, 1, 3))
+    cloud = cloud_from_rgbd(np.full(cam.shape, 2.0), rgb, cam)
+    im = make_imaging("surfel", cam, (6, 8), background=0.0, border=0)
+    r = SurfelRenderer(cloud, im, "tz")
+    alphas = make_grid(0.01, 0.0025)
+    hulls = segment_hulls(r, alphas)
+    frames = r.render_batch(alphas).numpy()
+    for i in range(len(alphas) - 1):
+        ends_lo = np.minimum(frames[i], frames[i + 1])
+        ends_hi = np.maximum(frames[i], frames[i + 1])
+        assert np.all(hulls.lo[i] >= ends_lo - 1e-5) and np.all(hulls.hi[i] <= ends_hi + 1e-5)
+
+
+def test_segment_values_conversion_is_as_sound_as_the_hull():
+    rng = np.random.default_rng(4)
+    cloud = random_cloud(rng, True)
+    im = make_imaging("surfel", CAM, (3, 4), background=0.5, border=0)
+    r = SurfelRenderer(cloud, im, "ry")
+    alphas = make_grid(0.02, 0.01)
+    hulls = segment_hulls(r, alphas)
+    frames = r.render_batch(alphas).numpy()
+    values = hulls.to_segment_values(frames)
+    # the sparse form drops only the float margins of constant pixels: equal up to them ...
+    np.testing.assert_allclose(values.pair_bound_sq(frames), hulls.pair_bound_sq(frames), rtol=1e-4)
+    y = frames[2]
+    np.testing.assert_allclose(values.anchor_dist_sq(frames, y), hulls.dist_sq(y), rtol=1e-4)
+    # ... and still above every brute-force frame of each segment
+    for i in range(len(alphas) - 1):
+        for a in np.linspace(alphas[i], alphas[i + 1], 9):
+            f = reference_frame(cloud.points, cloud.colors, im, "ry", a)
+            assert ((f - frames[i]) ** 2).sum() + ((f - frames[i + 1]) ** 2).sum() <= values.pair_bound_sq(frames)[i]
+            assert ((f - y) ** 2).sum() <= values.anchor_dist_sq(frames, y)[i]
+
+
+def test_imaging_errors_and_crop():
+    with pytest.raises(PwsError, match="smaller than the classifier's input 16x12"):
+        make_imaging("surfel", CAM, (12, 16))
+    with pytest.raises(PwsError, match="masks the whole"):
+        make_imaging("surfel", CAM, (3, 4), border=2)
+    with pytest.raises(PwsError, match="unknown imaging model"):
+        make_imaging("splat", CAM, (3, 4))
+    cam = CameraIntrinsics(640, 480, 460.0, 460.0, 319.5, 239.5, "cam")
+    im = make_imaging("surfel", cam, (90, 160))
+    assert (im.factor, im.crop, im.camera.width, im.camera.height, im.camera.cy) == (4, (0, 60), 640, 360, 179.5)
+
+
+def test_auto_border_masks_what_enters_from_beyond_the_recording():
+    cam = CameraIntrinsics(64, 36, 60.0, 60.0, 31.5, 17.5, "cam")
+    cloud = cloud_from_rgbd(np.full(cam.shape, 1.0), np.ones(cam.shape + (3,), np.float32), cam)
+    # tx 0.05 m at 1 m moves every point 3 native px = 1.5 output px (factor 2): 2 columns, no rows
+    im = make_imaging("surfel", cam, (18, 32), cloud=cloud, radii={"tx": 0.05})
+    assert im.border == (2, 0)
+    assert make_imaging("surfel", cam, (18, 32), cloud=cloud, radii={"ty": 0.05}).border == (0, 2)
+
+
+def test_place_anchors_covers_every_segment_within_the_target():
+    # frames on a line: D_i(x_j) = distance from point j to the farther end of segment i
+    x = np.linspace(0.0, 10.0, 41)
+    alphas = np.linspace(-1.0, 1.0, 41)
+
+    def row(j):
+        return np.maximum((x[:-1] - x[j]) ** 2, (x[1:] - x[j]) ** 2)
+
+    anchors = place_anchors(row, alphas, 20, 1.0 ** 2, max_anchors=50)
+    covered = np.any([row(a) < 1.0 for a in anchors], axis=0)
+    assert covered.all() and anchors[0] == 20
+    assert len(anchors) <= 7  # the centre covers 8 segments of 0.25, each other anchor 7 (strict <): 16 per side
+    few = place_anchors(row, alphas, 20, 1.0, max_anchors=3)  # the budget caps them, symmetric growth
+    assert len(few) == 3
+    assert place_anchors(row, alphas, 20, 0.0, max_anchors=9) == [20]  # no target radius: the centre only
+
+
+def test_refine_plan_splits_only_where_frames_differ():
+    alphas = make_grid(1.0, 0.5)  # -1, -0.5, 0, 0.5, 1
+    plan = Plan("pws_of", "tx", 1.0, 0.5, 5, alphas)
+    frames = np.zeros((5, 1, 1, 1))
+    frames[4] = 1.0  # only the last segment changes, by 1.0
+    out = refine_plan(plan, frames, 0.3, 100)
+    assert list(out.alphas[:4]) == [-1.0, -0.5, 0.0, 0.5] and len(out.alphas) == 4 + 4 and out.alphas[-1] == 1.0
+    assert refine_plan(plan, frames, 0.3, 6).num_partitions <= 6
