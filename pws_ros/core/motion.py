@@ -51,6 +51,16 @@ def pixel_span(c, xp=np):
     return xp.floor(c - PIXEL_OVERLAP), xp.floor(c + PIXEL_OVERLAP)
 
 
+# Depth tie rule of every imaging model: the renderer keeps the nearest depth and resolves exact float
+# ties to the lower point index; bounds treat two depths closer than depth_tie_margin as tied (both count).
+DEPTH_TIE_REL = 1e-9
+
+
+def depth_tie_margin(d, xp=np):
+    """Depths closer than this (metres) may compare either way in float arithmetic: bounds count both."""
+    return DEPTH_TIE_REL * (xp.abs(d) + 1.0)
+
+
 def parse_axis(name: str) -> str:
     """Normalise an axis name (``Tz``, ``tz``, ``RY`` ...); raise PwsError if unknown."""
     axis = str(name).strip().lower()
