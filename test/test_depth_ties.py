@@ -211,6 +211,8 @@ def test_fuzz_ties_benchmark_runs(capsys):
     assert fuzz_main(["--clouds", "2", "--poses-per-segment", "8"]) == 0
     out = capsys.readouterr().out
     assert "0 of 12 (cloud, axis) cases violate a bound" in out and "load average" in out
+    assert fuzz_main(["--clouds", "1", "--axes", "tz,tw"]) == 2
+    assert "unknown motion axis 'tw'" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("axis", AXES)

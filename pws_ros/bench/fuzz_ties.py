@@ -25,7 +25,8 @@ from ..core.audit import audit_bounds
 from ..core.bounds import segment_values
 from ..core.camera import CameraIntrinsics
 from ..core.cloud import Cloud
-from ..core.motion import AXES
+from ..core.errors import PwsError
+from ..core.motion import AXES, parse_axis
 from ..core.partition import make_grid
 from ..core.render import Renderer
 
@@ -65,19 +66,19 @@ def tie_cloud(rng: np.random.Generator, intr: CameraIntrinsics = CAMERA) -> Clou
     return Cloud(pts, cols)
 
 
-def fuzz_case(rng: np.random.Generator, axis: str, cloud: Cloud, poses_per_segment: int = 64):
+def fuzz_case(rng: np.random.Generator, axis: str, cloud: Cloud, poses_per_segment: int = 64, device: str = "cpu"):
     """Audit one (cloud, axis) case; returns the :class:`~pws_ros.core.audit.AuditReport`."""
     radius = PIXEL_MOTION[axis] * rng.uniform(0.5, 3.0)
     alphas = make_grid(radius, radius / int(rng.integers(1, 5)))
     background = float(rng.choice([0.0, 1.0]))
     values = segment_values(cloud, CAMERA, axis, alphas, background)
-    renderer = Renderer(cloud, CAMERA, axis, background=background)
+    renderer = Renderer(cloud, CAMERA, axis, background=background, device=device)
     anchors = alphas[[0, len(alphas) // 2, -1]]
     return audit_bounds(renderer, alphas, values, anchor_alphas=anchors, poses_per_segment=poses_per_segment,
                         seed=int(rng.integers(0, 2**31)))
 
 
-def run_fuzz(num_clouds: int, seed: int = 0, poses_per_segment: int = 64, axes=AXES) -> dict:
+def run_fuzz(num_clouds: int, seed: int = 0, poses_per_segment: int = 64, axes=AXES, device: str = "cpu") -> dict:
     """Fuzz ``num_clouds`` clouds on every axis of ``axes``; a summary dict."""
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
@@ -88,7 +89,7 @@ def run_fuzz(num_clouds: int, seed: int = 0, poses_per_segment: int = 64, axes=A
     for c in range(num_clouds):
         cloud = tie_cloud(rng)
         for axis in axes:
-            rep = fuzz_case(rng, axis, cloud, poses_per_segment)
+            rep = fuzz_case(rng, axis, cloud, poses_per_segment, device)
             poses += rep.poses_checked
             worst = max(worst, rep.worst_ratio)
             if rep.violations:
@@ -101,7 +102,7 @@ def run_fuzz(num_clouds: int, seed: int = 0, poses_per_segment: int = 64, axes=A
     return {"clouds": num_clouds, "cases": num_clouds * len(axes), "failing_cases": sum(failing.values()),
             "failing_cases_per_axis": failing, "violations": violations, "poses_checked": poses,
             "worst_ratio": worst, "examples": examples, "seconds": time.perf_counter() - t0,
-            "loadavg": list(os.getloadavg())}
+            "device": device, "loadavg": list(os.getloadavg())}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -111,9 +112,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0, help="fuzz seed (default 0)")
     p.add_argument("--poses-per-segment", type=int, default=64, help="re-rendered poses per segment (default 64)")
     p.add_argument("--axes", default=",".join(AXES), help="comma-separated axes (default all six)")
+    p.add_argument("--device", default="cpu", help="torch device of the renderer: cpu or cuda[:N] (default cpu)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     args = p.parse_args(argv)
-    out = run_fuzz(args.clouds, args.seed, args.poses_per_segment, [a.strip() for a in args.axes.split(",") if a.strip()])
+    try:
+        axes = [parse_axis(a) for a in args.axes.split(",") if a.strip()]
+        out = run_fuzz(args.clouds, args.seed, args.poses_per_segment, axes, args.device)
+    except PwsError as exc:
+        print(f"fuzz_ties: error: {exc}", file=sys.stderr)
+        return 2
     if args.json:
         json.dump(out, sys.stdout, indent=2)
         sys.stdout.write("\n")
@@ -125,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
         for e in out["examples"]:
             print(f"  e.g. cloud {e['cloud']} {e['axis']} alpha={e['alpha']!r} {e['kind']} segment {e['segment']}: "
                   f"{e['measured']:.6g} > {e['bound']:.6g}")
-        print(f"time {out['seconds']:.1f} s, load average {', '.join(f'{x:.2f}' for x in out['loadavg'])} (1/5/15 min)")
+        print(f"time {out['seconds']:.1f} s on {out['device']}, load average {', '.join(f'{x:.2f}' for x in out['loadavg'])} (1/5/15 min)")
     return 1 if out["failing_cases"] else 0
 
 
