@@ -28,6 +28,7 @@ from pws_ros.core.cloud import Cloud
 from pws_ros.core.motion import AXES, PIXEL_OVERLAP
 from pws_ros.core.partition import make_grid
 from pws_ros.core.render import Renderer
+from pws_ros.core.sweep import pixel_states
 
 W, H = CAMERA.width, CAMERA.height
 FOOTPRINT = 1e-6           # pixel footprints overlap by 1e-6 px (core/motion.py)
@@ -135,6 +136,40 @@ def test_renderer_breaks_exact_ties_to_the_lower_index():
             winner, _, _ = brute_render(p, axis, 0.01)
             r, c = np.argwhere(winner >= 0)[0]
             np.testing.assert_array_equal(fr[:, r, c], [cols[order[0]]] * 2)
+
+
+def test_sweep_candidates_hold_what_the_renderer_shows_on_tie_clouds():
+    """The renderer (torch) and the exact sweep (numpy) apply the tie rule each in its own code: at random
+    poses, the value each pixel shows is a candidate of the sweep's interval there, and it is the sweep's
+    ``winner`` wherever no two depths are within float error of each other (brute force above)."""
+    rng = np.random.default_rng(99)
+    checked = 0
+    for _ in range(20):
+        cloud = unique_colours(tie_cloud(rng))
+        n = len(cloud.points)
+        for axis in AXES:
+            b = 2 * PIXEL_MOTION[axis]
+            st = pixel_states(cloud.points, CAMERA, axis, -b, b)
+            alphas = rng.uniform(-b, b, 4)
+            frames = Renderer(cloud, CAMERA, axis, background=1.0).render_batch(alphas).numpy()
+            for a, fr in zip(alphas, frames):
+                shown = (np.rint(fr[..., 0].astype(np.float64) * (n + 1)).astype(int) - 1).ravel()
+                shown[shown >= n] = -1
+                _, tied, edgy = brute_render(cloud.points, axis, a)
+                for p in range(H * W):
+                    lo, hi = np.searchsorted(st.pix, p, "left"), np.searchsorted(st.pix, p, "right")
+                    j = lo + min(int(np.searchsorted(st.end[lo:hi], a, "left")), hi - lo - 1)
+                    assert st.start[j] <= a <= st.end[j]
+                    margin = min(a - st.start[j], st.end[j] - a)
+                    if margin <= 0:
+                        continue
+                    checked += 1
+                    cands = st.cand_point[st.cand_ptr[j] : st.cand_ptr[j + 1]]
+                    assert shown[p] in cands, (axis, a, p, shown[p], cands)
+                    r, c = divmod(p, W)
+                    if margin > 1e-9 * b and len(tied[r][c]) <= 1 and not edgy[r, c]:
+                        assert st.winner[j] == shown[p], (axis, a, p, shown[p], st.winner[j])
+    assert checked > 0.99 * 20 * 6 * 4 * H * W
 
 
 def sq_dist(x, y):
