@@ -56,6 +56,8 @@ def test_audit_on_an_analytic_model():
     rep = audit_bounds(Ramp(), alphas, RampBounds(), anchor_alphas=[0.0, 2.0], poses_per_segment=16)
     assert rep.ok and rep.segments == 4 and rep.poses_checked == 4 * 16 and rep.checks == 3 * 4 * 16
     assert rep.worst_ratio == pytest.approx(1.0)  # reached at the segment ends
+    many = audit_bounds(Ramp(), alphas, RampBounds(), anchor_alphas=[0.0], poses_per_segment=150)  # > one chunk
+    assert many.ok and many.poses_checked == 4 * 150 and many.checks == 2 * 4 * 150
     # 1% too small: only the poses near where the bound is reached are flagged
     rep = audit_bounds(Ramp(), alphas, RampBounds(0.99), anchor_alphas=[0.0, 2.0], poses_per_segment=16)
     assert not rep.ok and rep.worst_ratio == pytest.approx(1 / 0.99)

@@ -26,6 +26,7 @@ from .errors import require
 DEFAULT_POSES_PER_SEGMENT = 64
 # float neighbours of each segment end that are checked (1 and 2 ulps inside the segment)
 END_NEIGHBOURS = 2
+POSE_CHUNK = 64  # poses rendered at a time
 
 
 @dataclass
@@ -130,13 +131,15 @@ def audit_bounds(renderer, alphas, bounds, anchor_alphas=None, poses_per_segment
         require(pair.shape == (k1 - k0,), f"pair_bound_sq returned shape {pair.shape}, expected ({k1 - k0},)")
         dist = [np.asarray(bounds.anchor_dist_sq(ends, y, k0), dtype=np.float64) for y in anchors]
         for k in range(k0, k1):
-            a = segment_poses(alphas[k], alphas[k + 1], int(poses_per_segment), rng)
-            x = _frames(renderer, a)
-            poses += len(a)
             i = k - k0
-            check("pair", k, a, _sq_dist(x, ends[i][None]) + _sq_dist(x, ends[i + 1][None]), pair[i])
-            checks += len(a)
-            for j, y in enumerate(anchors):
-                check("anchor", k, a, _sq_dist(x, y[None]), dist[j][i], anchor=j)
+            poses_k = segment_poses(alphas[k], alphas[k + 1], int(poses_per_segment), rng)
+            for s in range(0, len(poses_k), POSE_CHUNK):
+                a = poses_k[s : s + POSE_CHUNK]
+                x = _frames(renderer, a)
+                poses += len(a)
+                check("pair", k, a, _sq_dist(x, ends[i][None]) + _sq_dist(x, ends[i + 1][None]), pair[i])
                 checks += len(a)
+                for j, y in enumerate(anchors):
+                    check("anchor", k, a, _sq_dist(x, y[None]), dist[j][i], anchor=j)
+                    checks += len(a)
     return AuditReport(nseg, poses, checks, worst, violations, time.perf_counter() - t_start)
