@@ -12,7 +12,7 @@ import sys
 from . import __version__
 from .core.errors import PwsError
 
-COMMANDS = ("plan", "render", "certify", "replay", "bench", "sim", "train")
+COMMANDS = ("plan", "render", "certify", "audit", "replay", "bench", "sim", "train")
 
 DESCRIPTION = """\
 Certify that an image classifier keeps its prediction under camera motion, with Pixel-wise

@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 import pytest
-from scipy.stats import norm
+from scipy.stats import binom, norm
 
 from conftest import LinearNet, MeanThresholdNet
 from pws_ros.core.bounds import render_plan
@@ -29,7 +29,6 @@ from pws_ros.core.model import load_model, save_model
 from pws_ros.core.partition import Plan, make_grid, plan_partitions
 from pws_ros.core.render import render
 from pws_ros.core.result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_NOT_CERTIFIED, Certificate
-from pws_ros.core.smoothing import clopper_pearson_lower
 
 W, H = 40, 30
 D = W * H
@@ -91,12 +90,14 @@ def check_certificate(cert: Certificate, cloud: Cloud, plan: Plan, config: Certi
         est = anchor_indices(plan.num_partitions, config.num_anchors)
     else:
         est = np.arange(plan.num_partitions)
-    # Bonferroni over exactly the bounds used, at level alpha / m: every p_a_lower is a Clopper-Pearson
-    # lower bound at that level for some count k
+    # Bonferroni over exactly the bounds used, at level alpha / m: every p_a_lower is a one-sided
+    # Clopper-Pearson lower bound at that level for some count k, i.e. (its defining equation)
+    # P(Bin(n, p) >= k) = alpha / m, or p = 0 for k = 0
     assert cert.num_bounds == len(est) == len(cert.p_a_lower)
-    table = clopper_pearson_lower(np.arange(config.n + 1), config.n, config.alpha / cert.num_bounds)
+    level = config.alpha / cert.num_bounds
+    k = np.arange(1, config.n + 1)
     for p in cert.p_a_lower:
-        assert np.min(np.abs(table - p)) <= 1e-12
+        assert p == 0.0 or np.min(np.abs(binom.sf(k - 1, config.n, p) / level - 1)) <= 1e-6, p
     if cert.status == STATUS_ABSTAIN:
         assert cert.radius == 0.0 and not cert.certified
         return
@@ -256,11 +257,23 @@ def test_certify_rendered_equals_certify(model, scenes):
         certify_rendered(rendered, model, cfg)
 
 
-def test_cms_returns_a_certificate(model, scenes):
-    cert = certify(scenes["one_frame"], CAM, model, "tx", 0.01, "cms", CertifyConfig(imaging="paper", n0=20, n=60, seed=0, cms_sigma=0.05))
+def test_cms_through_certify(model, scenes):
+    """method='cms' runs the CMS baseline with the config's sample sizes, alpha, seed and motion sigma.
+    Under tx motion with sigma 0.05 m the bright square (0.8 m, 24 px wide) shifts by at most ~12 px at
+    5 sigma and keeps a channel-0 mean far above T (checked below), so every one of the n motions votes
+    "bright": k = n, whose one-sided Clopper-Pearson bound is alpha^(1/n), and R = s Phi^-1(alpha^(1/n))."""
+    cloud = scenes["one_frame"]
+    s, n, alpha = 0.05, 60, 0.01
+    extreme = render(cloud, CAM, "tx", [-5 * s, 5 * s])
+    assert np.all(extreme[..., 0].reshape(2, -1).mean(axis=1) > 2 * T)
+    cert = certify(cloud, CAM, model, "tx", 0.01, "cms", CertifyConfig(imaging="paper", n0=20, n=n, alpha=alpha, seed=0, cms_sigma=s))
     assert isinstance(cert, Certificate)
-    assert cert.method == "cms" and cert.num_bounds == 1 and len(cert.p_a_lower) == 1
-    assert cert.status in (STATUS_CERTIFIED, STATUS_NOT_CERTIFIED, STATUS_ABSTAIN)
+    assert cert.method == "cms" and cert.num_bounds == 1 and cert.n0 == 20 and cert.n == n and cert.alpha == alpha
+    assert cert.label == 1 and cert.class_name == "bright" and cert.bounds["count"] == n
+    assert cert.bounds["motion_sigma"] == s and cert.frames_rendered == 20 + n
+    assert cert.p_a_lower[0] == pytest.approx(alpha ** (1 / n), rel=1e-9)
+    assert cert.radius == pytest.approx(s * norm.ppf(alpha ** (1 / n)), rel=1e-9)
+    assert cert.status == STATUS_CERTIFIED and cert.certified  # 0.01 < R = 0.072
 
 
 def test_certify_bad_input(model, scenes, tmp_path):

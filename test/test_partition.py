@@ -192,8 +192,10 @@ def test_pws_delta_with_depth_order_crossing():
     assert plan.delta_alpha <= shortest + 2 * (g[1] - g[0])
 
 
-def dense_visit_upper(cloud: Cloud, axis: str, radius: float, window: float, K: int = 12001) -> float:
-    """Upper bound on the shortest in-pixel visit (occlusion ignored) intersecting (-b, b), from a dense sweep."""
+def dense_visit_upper(cloud: Cloud, axis: str, radius: float, window: float, K: int = 12001, min_extent: float = 0.0) -> float:
+    """Upper bound on the shortest in-pixel visit (occlusion ignored) intersecting (-b, b), from a dense sweep;
+    only visits whose sampled extent ``|rho(last) - rho(first)|_inf`` (a lower bound on the true one) is at
+    least ``min_extent`` px count."""
     lo, hi = -window * radius, window * radius
     g = np.linspace(lo, hi, K)
     h = g[1] - g[0]
@@ -201,11 +203,12 @@ def dense_visit_upper(cloud: Cloud, axis: str, radius: float, window: float, K: 
     inside = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
     key = np.where(inside, np.floor(np.where(inside, v, 0)) * W + np.floor(np.where(inside, u, 0)), -1).astype(np.int64)
     best = math.inf
-    for s in key:
+    for p, s in enumerate(key):
         cut = np.nonzero(np.diff(s))[0]
         for k0, k1 in zip(np.concatenate([[0], cut + 1]), np.concatenate([cut, [K - 1]])):
             if s[k0] >= 0 and k0 > 0 and k1 < K - 1 and g[k1] > -radius and g[k0] < radius:
-                best = min(best, (k1 - k0 + 2) * h)
+                if max(abs(u[p, k1] - u[p, k0]), abs(v[p, k1] - v[p, k0])) >= min_extent:
+                    best = min(best, (k1 - k0 + 2) * h)
     return best
 
 
@@ -227,18 +230,25 @@ def test_pws_l_delta_is_below_every_visit(kind, seed, axis):
 
 @pytest.mark.parametrize("axis", ["tx", "ty", "tz", "rx", "ry", "rz"])
 def test_pws_of_plan(axis):
+    """Thm 3: delta_alpha = min over pixels of [min_P 1/(L_P + C_delta)] [min_P (extent - 2 delta)] over the
+    visits spanning more than 2 delta px. For each such visit U that product is at most extent / L_P <= |U|,
+    so the step never exceeds the shortest of them (dense sweep). Translations, in closed form: C_delta = 0,
+    L_P = f / Z and a pixel crossing spans 1 px plus the two footprint overlaps (2e-6 px), so
+    delta_alpha = Z_min (1 + 2e-6 - 2 delta) / f (Z_min: the near box)."""
     cloud = one_frame_cloud(0, noise=False)
     radius = RADIUS[axis]
-    plan = plan_partitions(cloud, CAM, axis, radius, "pws_of", delta=0.05)
-    assert plan.method == "pws_of" and plan.axis == axis and plan.unit == ("m" if axis[0] == "t" else "rad")
-    assert 0 < plan.delta_alpha <= radius
-    assert plan.details["delta_px"] == 0.05
-    assert plan.details["c_delta"] == pytest.approx(c_delta(cloud.points, CAM, axis, radius, 0.05))
-    assert plan.details["c_delta"] >= 0
-    assert plan.num_partitions == len(plan.alphas) >= 3
-    assert np.diff(plan.alphas).max() <= plan.delta_alpha * (1 + 1e-11)
-    # a larger delta-convexity constant never makes C_delta smaller
-    assert c_delta(cloud.points, CAM, axis, radius, 0.1) >= plan.details["c_delta"]
+    for d in (0.05, 0.2):
+        plan = plan_partitions(cloud, CAM, axis, radius, "pws_of", delta=d)
+        assert plan.method == "pws_of" and plan.axis == axis and plan.unit == ("m" if axis[0] == "t" else "rad")
+        assert plan.details["delta_px"] == d
+        assert 0 < plan.delta_alpha <= radius
+        upper = dense_visit_upper(cloud, axis, radius, plan.details["window"], min_extent=2 * d + 1e-9)
+        assert plan.delta_alpha <= upper * (1 + 1e-6)
+        if axis in ("tx", "ty"):
+            f = CAM.fx if axis == "tx" else CAM.fy
+            assert plan.delta_alpha == pytest.approx(cloud.points[:, 2].min() * (1 + 2e-6 - 2 * d) / f, rel=1e-6)
+        assert plan.num_partitions == len(plan.alphas) >= 3
+        assert np.diff(plan.alphas).max() <= plan.delta_alpha * (1 + 1e-11)
 
 
 def test_pws_l_point_through_a_pixel_corner():

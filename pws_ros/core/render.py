@@ -2,8 +2,10 @@
 
 Pixel ``(row, col) = (floor v, floor u)`` in pixel-edge coordinates (see :mod:`.motion`; a point within
 ``PIXEL_OVERLAP`` = 1e-6 px of a pixel edge is drawn on both sides of it); the nearest
-depth wins, ties go to the lower point index; points with ``z <= 0`` or outside the image are
-dropped; empty pixels get ``background``. Poses are processed in chunks so memory stays bounded
+depth wins, exact float ties go to the lower point index: the depth tie rule of
+:func:`.motion.depth_tie_margin`, whose bounds (:mod:`.sweep`) count every point within that margin of the
+nearest, since ulp-close depths may compare either way here; points with ``z <= 0`` or outside the
+image are dropped; empty pixels get ``background``. Poses are processed in chunks so memory stays bounded
 (``max_elements`` point-projections at a time) whatever the number of poses.
 """
 from __future__ import annotations

@@ -4,7 +4,8 @@ For a cloud and a motion range ``[lo, hi]`` this module computes, analytically u
 bisection, every *visit* (point ``P`` inside pixel ``(r, s)`` during ``[t0, t1]``) and then, per
 pixel, the *elementary intervals* between consecutive visit boundaries together with the set of
 values the pixel can show there: the colours of the points that can win the z-buffer (a point is
-kept unless some other point covering the whole interval is surely nearer) or the background when
+kept unless some other point covering the whole interval is surely nearer, beyond the depth tie
+margin of :func:`.motion.depth_tie_margin`) or the background when
 no point covers it (holes are states too).
 
 Everything downstream that must be sound (the per-segment bounds of :mod:`.bounds`) or faithful to
@@ -17,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .camera import CameraIntrinsics
-from .motion import PIXEL_OVERLAP, depth, pixel_span, project, split_points
+from .motion import PIXEL_OVERLAP, depth, depth_tie_margin, pixel_span, project, split_points
 
 BISECT_ITERS = 64
 
@@ -194,7 +195,8 @@ def pixel_states(points: np.ndarray, intr: CameraIntrinsics, axis: str, lo: floa
     A visit ``[t0, t1]`` is taken as *possibly* present on ``[t0 - tol, t1 + tol]`` and *surely* present
     on ``[t0 + tol, t1 - tol]`` (range ends excepted), and those four instants are the breakpoints, so a
     boundary's float uncertainty sits in an interval of its own. Candidates of an interval: every
-    possibly present point that no surely present point beats (nearer at both ends of the interval),
+    possibly present point that no surely present point beats (nearer by more than
+    :func:`.motion.depth_tie_margin` at both ends of the interval: near-ties count both points),
     plus the background unless some point is surely present. Under ``rx``/``ry`` the depth order of
     two candidates can swap inside an interval: those instants are added as breakpoints too, so
     ``winner`` (the renderer's choice) is constant on every interval.
@@ -275,24 +277,30 @@ def _states(points, intr, axis, lo, hi, visits: Visits, tol: float, extra_pix, e
     def group_min(x):
         return np.minimum.reduceat(x, g_start) if total else x[:0]
 
-    # Candidates: Q is dropped only if some surely present point R is strictly nearer than Q at both
-    # ends of the interval. Depth differences of two points are linear in alpha (translations),
-    # constant (rz) or harmonic (rx, ry: a sign change needs a zero, and two zeros are pi apart), so on
-    # an interval shorter than pi "nearer at both ends" means nearer throughout: the test never drops
-    # a point that can win. Witnesses: the surely present point nearest at the start (ties: nearest
-    # at the end) and the one nearest at the end (ties: nearest at the start).
+    # Candidates (the tie rule of motion.depth_tie_margin): Q is dropped only if some surely present point
+    # R is nearer than Q by more than depth_tie_margin at both ends of the interval; depths closer than
+    # that may compare either way in float arithmetic (ulp-close copies of a point, equal quantised
+    # depths), and the renderer resolves an exact float tie to the lower index, which may be Q, so both
+    # count. Depth differences of two points are linear in alpha (translations), constant (rz) or
+    # harmonic (rx, ry: concave where positive, and two zeros are pi apart), so on an interval shorter
+    # than pi a difference above the margin at both ends stays above the smaller margin throughout: the
+    # test never drops a point that can win, float rounding included. Witnesses: the surely present
+    # point nearest at the start (ties: nearest at the end) and the one nearest at the end (ties:
+    # nearest at the start).
     P = points[vpt]
     ds = depth(P, axis, s_j)
     de = depth(P, axis, e_j)
+    ms, me = depth_tie_margin(ds), depth_tie_margin(de)
     is_cand = np.ones(total, dtype=bool)
-    for primary, secondary in ((ds, de), (de, ds)):
+    for primary, secondary, m_p, m_s in ((ds, de, ms, me), (de, ds, me, ms)):
         p_sure = np.where(sure, primary, np.inf)
         p_min = group_min(p_sure)[gid]
         s_w = group_min(np.where(sure & (p_sure == p_min), secondary, np.inf))[gid]
-        is_cand &= ~((p_min < primary) & (s_w < secondary))
-    # winner (the renderer's choice at the midpoint): the nearest point present there, then min index
+        is_cand &= ~((p_min < primary - m_p) & (s_w < secondary - m_s))
+    # winner (the renderer's choice at the midpoint): the nearest candidate present there, exact float
+    # ties to the lower index (every point that can win is a candidate, so this is the renderer's rule)
     mid = 0.5 * (s_j + e_j)
-    present = (visits.t0[own] <= mid) & (mid <= visits.t1[own])
+    present = is_cand & (visits.t0[own] <= mid) & (mid <= visits.t1[own])
     dm = np.where(present, depth(P, axis, mid), np.inf)
     dm_min = group_min(dm)[gid]
     big = np.iinfo(np.int64).max
