@@ -368,7 +368,10 @@ def _find_extrinsic(bag: BagReader, chosen: dict[str, str], decoded: dict[str, A
                                                require_same_frame=config.require_same_frame)
     except PwsError:
         return None, ""   # a bad CameraInfo: the input check says so
-    if not problem or dinfo is None:
+    if not problem:
+        return None, ""
+    if dinfo is None:
+        notes.append(f"{problem}; registering it needs the depth camera's CameraInfo: none was found (--depth-info-topic)")
         return None, ""
     tried = []
     md, mc = REALSENSE_STREAM.match(d), REALSENSE_STREAM.match(c)
@@ -388,21 +391,21 @@ def _find_extrinsic(bag: BagReader, chosen: dict[str, str], decoded: dict[str, A
         tried.append(f"no {md.group(1)}/tf/N + {mc.group(1)}/tf/N topics")
     dframe = str(decoded[d].header.frame_id or "").lstrip("/")
     cframe = str(decoded[c].header.frame_id or "").lstrip("/")
-    if TF_STATIC_TOPIC in bag.topics_of_type(T_TF_MESSAGE) and dframe and cframe and dframe != cframe:
+    if not (dframe and cframe and dframe != cframe):
+        tried.append(f"the images' frame ids {dframe!r} and {cframe!r} do not name two frames to look up in TF")
+    elif TF_STATIC_TOPIC not in bag.topics_of_type(T_TF_MESSAGE):
+        tried.append(f"no {TF_STATIC_TOPIC} topic")
+    else:
         edges = []
         for m in bag.messages([TF_STATIC_TOPIC]):
             try:
-                for ts in bag.deserialize(m).transforms:
-                    edges.append((str(ts.header.frame_id).lstrip("/"), str(ts.child_frame_id).lstrip("/"),
-                                  msgconv.extrinsic_from_transform(ts)))
+                edges += msgconv.transforms_from_tf_message(bag.deserialize(m))
             except (PwsError, AttributeError) as exc:
                 notes.append(f"skipping a {TF_STATIC_TOPIC} message: {exc}")
         found = chain_transform(edges, dframe, cframe) if edges else None
         if found is not None:
             return found, f"{TF_STATIC_TOPIC} ({dframe!r} -> {cframe!r})"
         tried.append(f"no transform between {dframe!r} and {cframe!r} on {TF_STATIC_TOPIC}")
-    else:
-        tried.append(f"no {TF_STATIC_TOPIC} between the frames {dframe!r} and {cframe!r}")
     notes.append(f"{problem}, and no depth -> colour extrinsic was found to register it ({'; '.join(tried)})")
     return None, ""
 

@@ -389,6 +389,17 @@ def extrinsic_from_transform(msg: Any, source: str = "") -> Extrinsic:
         raise PwsError(f"not a geometry_msgs/Transform ({exc})") from None
 
 
+def transforms_from_tf_message(msg: Any) -> list[tuple[str, str, Extrinsic]]:
+    """The ``(parent, child, T)`` edges of a ``tf2_msgs/TFMessage`` (``/tf_static``), ``T`` mapping child
+    coordinates to parent coordinates, frame names without a leading ``/``: the input of
+    :func:`~pws_ros.core.registration.chain_transform`."""
+    edges = []
+    for ts in list(getattr(msg, "transforms", []) or []):
+        parent, child = str(ts.header.frame_id).lstrip("/"), str(ts.child_frame_id).lstrip("/")
+        edges.append((parent, child, extrinsic_from_transform(ts, f"{parent} <- {child}")))
+    return edges
+
+
 def registration_problem(depth_msg: Any, color_msg: Any, info_msg: Any, depth_info_msg: Any | None = None,
                          *, require_same_frame: bool = True) -> str:
     """Why a depth + colour pair is not registered ("" when it is, as far as the messages tell):
@@ -446,5 +457,5 @@ __all__ = [
     "ALIGNED_DEPTH_HINT", "CloudConversion", "PointCloudArrays", "SUPPORTED_ENCODINGS", "as_byte_array",
     "cloud_and_intrinsics_from_pointcloud2", "cloud_from_pointcloud2", "cloud_from_rgbd", "color_to_numpy",
     "depth_to_meters", "extrinsic_from_transform", "header_stamp_ns", "image_to_numpy", "intrinsics_from_camera_info",
-    "intrinsics_from_organized_cloud", "pointcloud2_to_arrays", "registration_problem", "stamp_to_ns",
+    "intrinsics_from_organized_cloud", "pointcloud2_to_arrays", "registration_problem", "stamp_to_ns", "transforms_from_tf_message",
 ]
