@@ -28,6 +28,7 @@ from __future__ import annotations
 import bisect
 import heapq
 import math
+import re
 import sys
 import time
 from collections import Counter
@@ -41,6 +42,7 @@ from .bridge.config import PwsConfig, depth_info_topic
 from .bridge.inputs import InputAssembler, RawFrame, convert
 from .core.errors import PwsError, require
 from .core.motion import UNITS
+from .core.registration import Extrinsic, chain_transform
 from .core.result import STATUS_ERROR, Certificate
 from .report import FrameRecord, format_table, summarize, write_report
 
@@ -50,6 +52,12 @@ T_POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 T_IMAGE = "sensor_msgs/msg/Image"
 T_CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 T_DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
+T_TRANSFORM = "geometry_msgs/msg/Transform"
+T_TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+TF_STATIC_TOPIC = "/tf_static"
+# the RealSense SDK recorder: /device_<d>/sensor_<s>/<Stream>_<i>/tf/<group> holds the extrinsic from
+# the group's reference stream to that stream (P_stream = R P_reference + t)
+REALSENSE_STREAM = re.compile(r"^(/device_\d+/sensor_\d+/[A-Za-z]+_\d+)/")
 DEPTH_ENCODINGS = {"16uc1", "mono16", "32fc1"}
 COLOR_ENCODINGS = {"rgb8", "bgr8", "rgba8", "bgra8", "mono8"}
 # what the live pipeline node publishes (relative names; prefixed with the namespace)
@@ -106,6 +114,8 @@ class InputTopics:
     depth_info: str = ""
     truth: str = ""
     notes: list[str] = field(default_factory=list)
+    extrinsic: Extrinsic | None = None      # depth -> colour, set when depth and colour are not registered
+    extrinsic_from: str = ""                # where it was read (topic and frames)
 
     def roles(self) -> dict[str, str]:
         return {k: v for k, v in (("points", self.points), ("depth", self.depth), ("color", self.color), ("info", self.info),
@@ -123,6 +133,9 @@ class InputTopics:
             parts.append(f"depth camera info {self.depth_info}")
         if self.truth:
             parts.append(f"ground truth {self.truth}")
+        if self.extrinsic is not None and self.mode != "pointcloud2":
+            parts.append(f"depth registered into the colour camera with the depth -> colour extrinsic from {self.extrinsic_from} "
+                         f"({self.extrinsic.describe()})")
         return f"input ({self.mode}): " + ", ".join(parts)
 
 
@@ -202,7 +215,8 @@ def discover_inputs(bag: BagReader, config: PwsConfig, overrides: dict[str, str]
     ``depth_info``, ``truth``) first, then the config's topic names when the bag has them, then by
     message type (an organized PointCloud2; a depth + colour Image pair, preferring registered /
     aligned depth of the colour's size; the CameraInfo closest to the colour topic by name; a separate
-    depth CameraInfo, which makes unregistered depth refused)."""
+    depth CameraInfo; for depth that is not registered, the depth -> colour extrinsic from the
+    RealSense recorder's ``.../tf/<group>`` topics or ``/tf_static``, without which it is refused)."""
     ov = {k: v for k, v in (overrides or {}).items() if v}
     flags = {"cloud": "--cloud-topic", "depth": "--depth-topic", "color": "--color-topic", "info": "--info-topic",
              "depth_info": "--depth-info-topic", "truth": "--truth-topic"}
@@ -310,6 +324,11 @@ def discover_inputs(bag: BagReader, config: PwsConfig, overrides: dict[str, str]
         if cands:
             chosen["depth_info"] = cands[0]
 
+    # -- depth -> colour extrinsic, for depth that is not registered --
+    extrinsic, extrinsic_from = None, ""
+    if mode != "pointcloud2" and all(chosen.get(k) in decoded for k in ("depth", "color", "info")):
+        extrinsic, extrinsic_from = _find_extrinsic(bag, chosen, decoded, config, notes)
+
     # -- ground truth --
     if "truth" not in chosen:
         diag = bag.topics_of_type(T_DIAGNOSTIC_ARRAY)
@@ -333,7 +352,62 @@ def discover_inputs(bag: BagReader, config: PwsConfig, overrides: dict[str, str]
                                           f"(it holds: {bag.describe()}); give one with --info-topic")
     return InputTopics(mode, chosen.get("cloud", ""), chosen.get("depth", "") if mode != "pointcloud2" else "",
                        chosen.get("color", "") if mode != "pointcloud2" else "", chosen.get("info", ""),
-                       chosen.get("depth_info", "") if mode != "pointcloud2" else "", chosen.get("truth", ""), notes)
+                       chosen.get("depth_info", "") if mode != "pointcloud2" else "", chosen.get("truth", ""), notes,
+                       extrinsic, extrinsic_from)
+
+
+def _find_extrinsic(bag: BagReader, chosen: dict[str, str], decoded: dict[str, Any], config: PwsConfig,
+                    notes: list[str]) -> tuple[Extrinsic | None, str]:
+    """The depth -> colour extrinsic when the first depth + colour pair is not registered: from the
+    RealSense recorder's ``.../tf/<group>`` topics of both streams, else from ``/tf_static`` between
+    the two images' frame ids. ``(None, "")`` when the pair is registered or nothing is found."""
+    d, c = chosen["depth"], chosen["color"]
+    dinfo = decoded.get(chosen.get("depth_info", ""))
+    try:
+        problem = msgconv.registration_problem(decoded[d], decoded[c], decoded[chosen["info"]], dinfo,
+                                               require_same_frame=config.require_same_frame)
+    except PwsError:
+        return None, ""   # a bad CameraInfo: the input check says so
+    if not problem:
+        return None, ""
+    if dinfo is None:
+        notes.append(f"{problem}; registering it needs the depth camera's CameraInfo: none was found (--depth-info-topic)")
+        return None, ""
+    tried = []
+    md, mc = REALSENSE_STREAM.match(d), REALSENSE_STREAM.match(c)
+    if md and mc:
+        tf_topics = set(bag.topics_of_type(T_TRANSFORM))
+        for t_d in sorted(t for t in tf_topics if t.startswith(md.group(1) + "/tf/")):
+            t_c = mc.group(1) + "/tf/" + t_d.rsplit("/", 1)[1]
+            if t_c not in tf_topics:
+                continue
+            first = bag.first_messages([t_d, t_c], max_scan=20_000)
+            try:
+                ref_to_d, ref_to_c = (msgconv.extrinsic_from_transform(bag.deserialize(first[t][0])) for t in (t_d, t_c))
+            except (PwsError, KeyError, IndexError) as exc:
+                notes.append(f"cannot read the extrinsics {t_d} / {t_c}: {exc}")
+                continue
+            return ref_to_d.inverse().then(ref_to_c), f"{t_d} and {t_c} (RealSense recorder)"
+        tried.append(f"no {md.group(1)}/tf/N + {mc.group(1)}/tf/N topics")
+    dframe = str(decoded[d].header.frame_id or "").lstrip("/")
+    cframe = str(decoded[c].header.frame_id or "").lstrip("/")
+    if not (dframe and cframe and dframe != cframe):
+        tried.append(f"the images' frame ids {dframe!r} and {cframe!r} do not name two frames to look up in TF")
+    elif TF_STATIC_TOPIC not in bag.topics_of_type(T_TF_MESSAGE):
+        tried.append(f"no {TF_STATIC_TOPIC} topic")
+    else:
+        edges = []
+        for m in bag.messages([TF_STATIC_TOPIC]):
+            try:
+                edges += msgconv.transforms_from_tf_message(bag.deserialize(m))
+            except (PwsError, AttributeError) as exc:
+                notes.append(f"skipping a {TF_STATIC_TOPIC} message: {exc}")
+        found = chain_transform(edges, dframe, cframe) if edges else None
+        if found is not None:
+            return found, f"{TF_STATIC_TOPIC} ({dframe!r} -> {cframe!r})"
+        tried.append(f"no transform between {dframe!r} and {cframe!r} on {TF_STATIC_TOPIC}")
+    notes.append(f"{problem}, and no depth -> colour extrinsic was found to register it ({'; '.join(tried)})")
+    return None, ""
 
 
 def _no_input_message(bag: BagReader, what: str, notes: list[str]) -> str:
@@ -581,7 +655,7 @@ class Replay:
         try:
             msgconv.cloud_from_rgbd(msgs[inputs.depth], msgs[inputs.color], msgs[inputs.info],
                                     msgs.get(inputs.depth_info) if inputs.depth_info else None,
-                                    require_same_frame=self.config.require_same_frame)
+                                    require_same_frame=self.config.require_same_frame, extrinsic=inputs.extrinsic)
         except PwsError as exc:
             self.problems.append(str(exc))
             self.warn(f"input check on the first depth + colour pair: {exc}")
@@ -727,6 +801,7 @@ class Replay:
                 self.config = cfg
                 self.problems.clear()
             self.assembler = InputAssembler(cfg)
+            self.assembler.set_extrinsic(inputs.extrinsic)
             if out is not None:
                 prepare_output(out, opts.overwrite)
                 self.writer = BagWriter(out, compress=opts.compress, typestore=self.types.typestore).open()

@@ -7,6 +7,10 @@ complete: a PointCloud2 alone (intrinsics from the latest CameraInfo, the organi
 CameraInfo: the latest one, or stamp-matched with ``camera_info_sync: stamp``). Callbacks only
 buffer; :func:`convert` (the slow part: message -> cloud) runs in the worker on the newest frame only.
 
+Depth and colour that are not registered to each other are registered into the colour camera when
+the depth -> colour extrinsic is known (:meth:`InputAssembler.set_extrinsic`: from TF or a driver's
+extrinsics topic) and the depth stream's CameraInfo arrives; otherwise they are refused.
+
 In ``input_mode: auto`` the first source that completes a frame is used from then on (the other is
 ignored and counted), so a camera publishing both points and images is not certified twice.
 """
@@ -21,6 +25,7 @@ import numpy as np
 from ..core.camera import CameraIntrinsics
 from ..core.cloud import Cloud
 from ..core.errors import require
+from ..core.registration import Extrinsic
 from . import msgconv
 from .config import PwsConfig, resolve_path
 from .sync import StampMatcher
@@ -33,7 +38,7 @@ class RawFrame:
     source: str                     # "pointcloud2" | "rgbd"
     stamp_ns: int
     header: Any
-    messages: dict[str, Any] = field(default_factory=dict)  # points | depth, color | info, depth_info
+    messages: dict[str, Any] = field(default_factory=dict)  # points | depth, color | info, depth_info, extrinsic
 
 
 @dataclass
@@ -71,6 +76,7 @@ class InputAssembler:
         # held (the newest one only) and completed by the first CameraInfo instead of being lost
         self._held: dict[str, Any] | None = None
         self.held_replaced = 0
+        self.extrinsic: Extrinsic | None = None   # depth -> colour optical frame (registers unregistered depth)
 
     # -- helpers --
     def _accept_source(self, source: str) -> bool:
@@ -102,6 +108,11 @@ class InputAssembler:
     def waiting_for_info(self) -> bool:
         """True while a depth + colour pair waits for the first CameraInfo."""
         return self._held is not None
+
+    def set_extrinsic(self, extrinsic: Extrinsic | None) -> None:
+        """The depth -> colour transform used to register depth that is not registered (None: refuse it)."""
+        with self._lock:
+            self.extrinsic = extrinsic
 
     # -- callbacks --
     def on_info(self, msg: Any) -> RawFrame | None:
@@ -157,6 +168,8 @@ class InputAssembler:
         msgs.setdefault("info", self.latest_info)
         if self.latest_depth_info is not None:
             msgs["depth_info"] = self.latest_depth_info
+        if self.extrinsic is not None:
+            msgs["extrinsic"] = self.extrinsic
         color = msgs["color"]
         return self._emit(RawFrame("rgbd", msgconv.header_stamp_ns(color), color.header, msgs))
 
@@ -169,7 +182,7 @@ def convert(frame: RawFrame, config: PwsConfig, fallback: CameraIntrinsics | Non
     else:
         require(frame.source == "rgbd", f"unknown input source {frame.source!r}")
         cloud, intr = msgconv.cloud_from_rgbd(m["depth"], m["color"], m["info"], m.get("depth_info"),
-                                              require_same_frame=config.require_same_frame)
+                                              require_same_frame=config.require_same_frame, extrinsic=m.get("extrinsic"))
         has_color = True
         # the cloud as a PointCloud2 carries it (float32 x y z): the pipeline and the four-process chain
         # (where the cloud crosses a topic) then certify exactly the same points

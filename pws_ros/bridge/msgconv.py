@@ -28,6 +28,7 @@ from ..core.camera import CameraIntrinsics
 from ..core.cloud import Cloud
 from ..core.cloud import cloud_from_rgbd as _core_cloud_from_rgbd
 from ..core.errors import PwsError, require
+from ..core.registration import Extrinsic, register_depth
 
 # encoding -> (channels, numpy dtype, bytes per channel)
 COLOR_ENCODINGS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1}
@@ -377,33 +378,76 @@ def cloud_and_intrinsics_from_pointcloud2(msg: Any, info_msg: Any | None = None,
 
 # ---- RGB-D --------------------------------------------------------------------------------
 
+def extrinsic_from_transform(msg: Any, source: str = "") -> Extrinsic:
+    """A ``geometry_msgs/Transform`` (or the ``transform`` of a ``TransformStamped``) as an
+    :class:`~pws_ros.core.registration.Extrinsic` (PwsError when malformed)."""
+    tf = getattr(msg, "transform", msg)
+    try:
+        tr, q = tf.translation, tf.rotation
+        return Extrinsic.from_quaternion((q.x, q.y, q.z, q.w), (tr.x, tr.y, tr.z), source)
+    except AttributeError as exc:
+        raise PwsError(f"not a geometry_msgs/Transform ({exc})") from None
+
+
+def transforms_from_tf_message(msg: Any) -> list[tuple[str, str, Extrinsic]]:
+    """The ``(parent, child, T)`` edges of a ``tf2_msgs/TFMessage`` (``/tf_static``), ``T`` mapping child
+    coordinates to parent coordinates, frame names without a leading ``/``: the input of
+    :func:`~pws_ros.core.registration.chain_transform`."""
+    edges = []
+    for ts in list(getattr(msg, "transforms", []) or []):
+        parent, child = str(ts.header.frame_id).lstrip("/"), str(ts.child_frame_id).lstrip("/")
+        edges.append((parent, child, extrinsic_from_transform(ts, f"{parent} <- {child}")))
+    return edges
+
+
+def registration_problem(depth_msg: Any, color_msg: Any, info_msg: Any, depth_info_msg: Any | None = None,
+                         *, require_same_frame: bool = True) -> str:
+    """Why a depth + colour pair is not registered ("" when it is, as far as the messages tell):
+    different image sizes, a depth CameraInfo whose intrinsics differ from ``info_msg``'s, or (with
+    ``require_same_frame``) different non-empty ``frame_id`` s. Reads only sizes and headers."""
+    dw, dh = int(getattr(depth_msg, "width", 0)), int(getattr(depth_msg, "height", 0))
+    cw, ch = int(getattr(color_msg, "width", 0)), int(getattr(color_msg, "height", 0))
+    if (dh, dw) != (ch, cw):
+        return f"depth {dw}x{dh} and colour {cw}x{ch} are not registered (different sizes)"
+    if depth_info_msg is not None:
+        dintr, intr = intrinsics_from_camera_info(depth_info_msg), intrinsics_from_camera_info(info_msg)
+        if not _same_intrinsics(dintr, intr):
+            return (f"depth and colour are not registered (depth camera fx={dintr.fx:.1f} cx={dintr.cx:.1f} {dintr.width}x{dintr.height}, "
+                    f"colour camera fx={intr.fx:.1f} cx={intr.cx:.1f} {intr.width}x{intr.height})")
+    dframe, cframe = _frame_id(depth_msg), _frame_id(color_msg)
+    if require_same_frame and dframe and cframe and dframe != cframe:
+        return f"depth frame {dframe!r} and colour frame {cframe!r} differ: depth and colour are not registered"
+    return ""
+
+
 def cloud_from_rgbd(depth_msg: Any, color_msg: Any, info_msg: Any, depth_info_msg: Any | None = None,
-                    *, require_same_frame: bool = True) -> tuple[Cloud, CameraIntrinsics]:
-    """The one-frame cloud of a registered depth + colour pair and the colour camera's intrinsics.
+                    *, require_same_frame: bool = True, extrinsic: Extrinsic | None = None) -> tuple[Cloud, CameraIntrinsics]:
+    """The one-frame cloud of a depth + colour pair and the colour camera's intrinsics.
 
     Depth and colour must be *registered* (the depth resampled into the colour camera): same size
     as each other and as ``info_msg``; when ``depth_info_msg`` (the depth stream's own CameraInfo)
     is given its intrinsics must equal ``info_msg``'s; with ``require_same_frame`` non-empty
-    ``frame_id`` s must agree. Otherwise PwsError: such data would paint points with the wrong colours.
+    ``frame_id`` s must agree (:func:`registration_problem`). A pair that is not registered is
+    registered here when ``extrinsic`` (depth -> colour optical frame) and ``depth_info_msg`` are
+    given (:func:`~pws_ros.core.registration.register_depth`: nearest depth wins, holes stay holes);
+    otherwise PwsError: such data would paint points with the wrong colours.
     """
+    problem = registration_problem(depth_msg, color_msg, info_msg, depth_info_msg, require_same_frame=require_same_frame)
+    require(not problem or extrinsic is not None, f"{problem}; {ALIGNED_DEPTH_HINT}")
     depth = depth_to_meters(depth_msg)
     rgb = color_to_numpy(color_msg)
-    dh, dw = depth.shape
     ch, cw = rgb.shape[:2]
-    require((dh, dw) == (ch, cw),
-            f"depth {dw}x{dh} and colour {cw}x{ch} are not registered (different sizes); {ALIGNED_DEPTH_HINT}")
     intr = intrinsics_from_camera_info(info_msg)
     require((intr.height, intr.width) == (ch, cw),
             f"CameraInfo {intr.width}x{intr.height} does not match the images {cw}x{ch}; use the colour camera's CameraInfo")
-    if depth_info_msg is not None:
+    if problem:
+        require(depth_info_msg is not None,
+                f"{problem}; registering depth into the colour camera needs the depth camera's CameraInfo (depth_camera_info_topic)")
         dintr = intrinsics_from_camera_info(depth_info_msg)
-        require(_same_intrinsics(dintr, intr),
-                f"depth and colour are not registered (depth camera fx={dintr.fx:.1f} cx={dintr.cx:.1f} {dintr.width}x{dintr.height}, "
-                f"colour camera fx={intr.fx:.1f} cx={intr.cx:.1f} {intr.width}x{intr.height}); {ALIGNED_DEPTH_HINT}")
-    dframe, cframe = _frame_id(depth_msg), _frame_id(color_msg)
-    if require_same_frame and dframe and cframe:
-        require(dframe == cframe,
-                f"depth frame {dframe!r} and colour frame {cframe!r} differ: depth and colour are not registered; {ALIGNED_DEPTH_HINT}")
+        require(dintr.shape == depth.shape,
+                f"depth CameraInfo {dintr.width}x{dintr.height} does not match the depth image {depth.shape[1]}x{depth.shape[0]}")
+        depth = register_depth(depth, dintr, intr, extrinsic)
+    cframe = _frame_id(color_msg)
     if cframe and not intr.frame_id:
         intr = replace(intr, frame_id=cframe)
     return _core_cloud_from_rgbd(depth, rgb, intr), intr
@@ -412,6 +456,6 @@ def cloud_from_rgbd(depth_msg: Any, color_msg: Any, info_msg: Any, depth_info_ms
 __all__ = [
     "ALIGNED_DEPTH_HINT", "CloudConversion", "PointCloudArrays", "SUPPORTED_ENCODINGS", "as_byte_array",
     "cloud_and_intrinsics_from_pointcloud2", "cloud_from_pointcloud2", "cloud_from_rgbd", "color_to_numpy",
-    "depth_to_meters", "header_stamp_ns", "image_to_numpy", "intrinsics_from_camera_info",
-    "intrinsics_from_organized_cloud", "pointcloud2_to_arrays", "stamp_to_ns",
+    "depth_to_meters", "extrinsic_from_transform", "header_stamp_ns", "image_to_numpy", "intrinsics_from_camera_info",
+    "intrinsics_from_organized_cloud", "pointcloud2_to_arrays", "registration_problem", "stamp_to_ns", "transforms_from_tf_message",
 ]
