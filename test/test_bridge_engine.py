@@ -256,3 +256,25 @@ def test_sigma_unlike_the_training_sigma_is_warned_once_per_value(make_model_fil
     plain, plain_logs = make_engine(make_model_file(input_size=(24, 32), name="plain.pt"), sigma=0.25)  # no metadata
     plain.process(cloud, small_camera, 1)
     assert not [m for lv, m in plain_logs if "trained with" in m]
+
+
+def test_self_audit_every_frame_and_a_wrong_bound_withdraws_the_certificate(model_path, small_camera, monkeypatch):
+    eng, logs = make_engine(model_path, axes=["tx"], **{"radius.tx": 0.02}, audit_every=1, audit_poses=4)
+    cloud = scene(small_camera)
+    (c,) = eng.process(cloud, small_camera, 1).certificates
+    assert c.status != "error" and c.bounds["audit"]["violations"] == 0
+    assert c.bounds["audit"]["poses"] >= 4 * (c.num_partitions - 1)
+    # a deliberately wrong bound (half the true one) is caught and the axis turns to ERROR
+    import pws_ros.core.imaging as imaging
+
+    true_hulls = imaging.segment_hulls
+
+    def halved(renderer, alphas, **kw):
+        h = true_hulls(renderer, alphas, **kw)
+        mid = (h.lo + h.hi) / 2
+        return imaging.HullValues(h.alphas, mid, mid, h.constant)
+
+    monkeypatch.setattr(imaging, "segment_hulls", halved)
+    (c,) = eng.process(cloud, small_camera, 2).certificates
+    assert c.status == "error" and "self-audit found" in c.reason and c.bounds["audit"]["violations"] > 0
+    assert any(level == "error" and "self-audit" in m for level, m in logs)

@@ -110,7 +110,7 @@ def check_certifications(got):
             assert v["level"] in (0, 1), v["message"]
             assert v["class_name"] == "c1" and v["n"] == 32 and v["sigma"] == 0.5 and v["hardware_id"] == "cam"
         for st in msgbuild.diagnostic_array_to_dicts(msg):
-            assert tuple(st["keys"][:13]) == msgbuild.DIAGNOSTIC_KEYS
+            assert tuple(st["keys"][:14]) == msgbuild.DIAGNOSTIC_KEYS
 
 
 def test_pipeline_one_certification_per_frame(ros, make_model_file):

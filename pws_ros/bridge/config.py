@@ -135,6 +135,11 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("batch_size", 256, "images per classifier call", range=(1, 1_000_000), nodes=_CERT),
     ParamSpec("num_anchors", 9, "anchor frames for coverage=anchors (surfel imaging: the most anchors, i.e. a budget of "
               "n0 + num_anchors * n classifier calls per axis; a frame needing more gets a smaller radius)", range=(1, 100_000), nodes=_CERT),
+    ParamSpec("audit_every", 0, "self-audit every k-th frame: re-render poses inside every segment of each certified axis "
+              "(audit_poses per segment) and check every bound the certificate used; a violation turns that axis to "
+              "ERROR; 0 = off", range=(0, 1_000_000), nodes=_CERT),
+    ParamSpec("audit_poses", 8, "poses re-rendered per segment by the self-audit (ends and their float neighbours included)",
+              range=(2, 100_000), nodes=_CERT),
     ParamSpec("cms_sigma", 0.0, "motion-space sigma of the cms baseline; 0 = the per-axis default", range=(0.0, 10.0), nodes=_CERT),
     # -- inputs --
     ParamSpec("input_mode", "auto", "input: pointcloud2, rgbd (depth + colour + CameraInfo), or auto (the first that arrives)",
@@ -214,6 +219,8 @@ class PwsConfig:
     seed: int = 0
     batch_size: int = 256
     num_anchors: int = 9
+    audit_every: int = 0
+    audit_poses: int = 8
     cms_sigma: float = 0.0
     input_mode: str = "auto"
     points_topic: str = "/camera/depth/color/points"

@@ -116,6 +116,7 @@ class FrameCertifier:
         self._lock = threading.Lock()
         self._aspect_warned = False
         self._sigma_checked: float | None = None
+        self._frames_seen = 0
         if load:
             self.model  # noqa: B018 - load now
             self.denoiser  # noqa: B018
@@ -360,6 +361,40 @@ class FrameCertifier:
 
         return self._guard(axis, run)
 
+    def audit(self, cert: Certificate, cloud: Cloud, imaging: Any, plan: Any) -> None:
+        """Self-audit (``audit_every``): re-render ``audit_poses`` poses inside every segment of ``plan``
+        through the same imaging model and check every bound the certificate used (:mod:`pws_ros.core.audit`,
+        its own distance code). Recorded in ``cert.bounds['audit']``; a violation makes the axis ERROR."""
+        from ..core.audit import audit_bounds
+        from ..core.bounds import segment_values
+        from ..core.certify import anchor_indices
+        from ..core.imaging import make_renderer, segment_hulls
+
+        try:
+            renderer = make_renderer(cloud, imaging, plan.axis, device=self.device)
+            if imaging.kind == "surfel":
+                values = segment_hulls(renderer, plan.alphas)
+            else:
+                values = segment_values(cloud, imaging.camera, plan.axis, plan.alphas, imaging.background)
+            anchors = cert.bounds.get("anchors")
+            if anchors is None and cert.coverage == "anchors":
+                anchors = plan.alphas[anchor_indices(plan.num_partitions, self.config.num_anchors)]
+            report = audit_bounds(renderer, plan.alphas, values, anchor_alphas=anchors,
+                                  poses_per_segment=int(self.config.audit_poses), seed=int(cert.seed or 0))
+        except Exception as exc:  # an audit that cannot run says so; it never passes silently
+            self.log("error", f"self-audit of {plan.axis} failed to run: {type(exc).__name__}: {exc}")
+            cert.bounds["audit"] = {"error": f"{type(exc).__name__}: {exc}"}
+            return
+        cert.bounds["audit"] = {"poses": report.poses_checked, "violations": len(report.violations),
+                                "worst_ratio": report.worst_ratio, "seconds": report.seconds}
+        if report.violations:
+            v = report.violations[0]
+            self.log("error", f"self-audit of {plan.axis}: {len(report.violations)} bound violation(s), e.g. segment "
+                              f"{v.segment} alpha={v.alpha!r}: {v.measured:.6g} > {v.bound:.6g}")
+            cert.status, cert.certified, cert.radius = "error", False, 0.0
+            cert.reason = (f"self-audit found {len(report.violations)} bound violation(s) in {report.poses_checked} "
+                           f"re-rendered poses: the certificate is withdrawn")
+
     def preview(self, cloud: Cloud, imaging: Any, plan: Any, every: int) -> list[tuple[str, int, np.ndarray]]:
         """Every ``every``-th frame of a plan (and its alpha = 0 frame) rendered as uint8 RGB."""
         from ..core.imaging import make_renderer
@@ -388,14 +423,19 @@ class FrameCertifier:
             imaging = self.imaging_for(intr, cloud)
         except PwsError as exc:
             certs = [self.error_for(a, str(exc)) for a in self.config.axes]
+        self._frames_seen += 1
+        audit = self.config.audit_every > 0 and (self._frames_seen - 1) % self.config.audit_every == 0
         if imaging is not None:
             for axis in self.config.axes:
                 t1 = time.perf_counter()
                 if should_stop is not None and should_stop():
                     certs.append(self.error_for(axis, "shutting down"))
                 else:
-                    certs.append(self.certify_axis(cloud, imaging, axis, dense_cloud, preview_every, previews, plans,
-                                                   stamp_ns=int(stamp_ns)))
+                    cert = self.certify_axis(cloud, imaging, axis, dense_cloud, preview_every, previews, plans,
+                                             stamp_ns=int(stamp_ns))
+                    if audit and cert.status != "error" and axis in plans:
+                        self.audit(cert, self.source_cloud(cloud, dense_cloud), imaging, plans[axis])
+                    certs.append(cert)
                 timings[axis] = time.perf_counter() - t1
         timings["total"] = time.perf_counter() - t0
         return FrameResult(int(stamp_ns), frame_id or intr.frame_id, certs, plans,

@@ -35,12 +35,12 @@ from ..core.motion import camera_pose
 from ..core.result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_ERROR, STATUS_NOT_CERTIFIED, Certificate
 
 DIAGNOSTIC_KEYS: tuple[str, ...] = (
-    "label", "class_name", "certified", "radius", "unit", "p_a_lower", "sigma", "n", "alpha",
+    "label", "class_name", "certified", "radius", "unit", "p_a_lower", "sigma", "n", "alpha", "frame_alpha",
     "num_partitions", "classifier_calls", "latency_ms", "compute_ms",
 )
 DIAGNOSTIC_EXTRA_KEYS: tuple[str, ...] = (
     "status", "requested_radius", "method", "coverage", "n0", "delta_alpha", "num_bounds",
-    "frames_rendered", "reason", "node",
+    "frames_rendered", "imaging", "reason", "node",
 )
 STATUS_NAME_PREFIX = "pws/"
 
@@ -325,6 +325,7 @@ def certificate_values(cert: Certificate, *, latency_ms: float, compute_ms: floa
         ("sigma", float(cert.sigma)),
         ("n", int(cert.n)),
         ("alpha", float(cert.alpha)),
+        ("frame_alpha", float(cert.frame_alpha if cert.frame_alpha is not None else cert.alpha)),
         ("num_partitions", int(cert.num_partitions)),
         ("classifier_calls", int(cert.classifier_calls)),
         ("latency_ms", float(latency_ms)),
@@ -337,6 +338,7 @@ def certificate_values(cert: Certificate, *, latency_ms: float, compute_ms: floa
         ("delta_alpha", float(cert.delta_alpha)),
         ("num_bounds", int(cert.num_bounds)),
         ("frames_rendered", int(cert.frames_rendered)),
+        ("imaging", cert.imaging),
         ("reason", " ".join(str(cert.reason).split())),
         ("node", node_name),
     ]
@@ -393,7 +395,8 @@ def parse_certification(msg: Any) -> dict[str, dict[str, Any]]:
         for k in ("label", "n", "num_partitions", "classifier_calls", "n0", "num_bounds", "frames_rendered"):
             if k in v:
                 typed[k] = int(v[k])
-        for k in ("radius", "p_a_lower", "sigma", "alpha", "latency_ms", "compute_ms", "requested_radius", "delta_alpha"):
+        for k in ("radius", "p_a_lower", "sigma", "alpha", "frame_alpha", "latency_ms", "compute_ms", "requested_radius",
+                  "delta_alpha"):
             if k in v:
                 typed[k] = float(v[k])
         typed["certified"] = v["certified"] == "true"

@@ -6,10 +6,11 @@ import math
 from ..core.audit import DEFAULT_POSES_PER_SEGMENT, audit_bounds
 from ..core.bounds import segment_values
 from ..core.certify import CertifyConfig, anchor_indices
+from ..core.imaging import SurfelRenderer, make_imaging, segment_hulls
 from ..core.motion import UNITS
-from ..core.partition import plan_partitions
+from ..core.partition import plan_partitions, plan_step
 from ..core.render import Renderer
-from .common import add_plan_args, add_scene_args, emit, load_scene, positive_int
+from .common import add_imaging_size_arg, add_plan_args, add_scene_args, emit, load_scene, positive_int
 
 MAX_LISTED = 20
 
@@ -25,6 +26,7 @@ def register(sub) -> None:
                                    "bound is violated, 1 if any is (each violation is listed), 2 on bad input.")
     add_scene_args(p)
     add_plan_args(p)
+    add_imaging_size_arg(p)
     p.add_argument("--poses-per-segment", type=positive_int, default=DEFAULT_POSES_PER_SEGMENT, metavar="K",
                    help=f"re-rendered poses per segment, ends included (default {DEFAULT_POSES_PER_SEGMENT}; raised "
                         "where needed to reach --min-poses)")
@@ -43,19 +45,27 @@ def register(sub) -> None:
 def run(args) -> int:
     cloud, intr = load_scene(args)
     CertifyConfig(background=args.background).validate()
-    plan = plan_partitions(cloud, intr, args.axis, args.radius, args.method, delta=args.delta,
-                           max_partitions=args.max_partitions, min_partitions=args.min_partitions)
+    im = make_imaging(args.imaging, intr, args.size, background=args.background, border=args.border, cloud=cloud,
+                      radii={args.axis: args.radius})
+    if im.kind == "surfel":
+        plan = plan_step(cloud, im.camera, args.axis, args.radius, args.method, step_px=args.step_px,
+                         max_partitions=args.max_partitions, min_partitions=args.min_partitions)
+        renderer = SurfelRenderer(cloud, im, plan.axis, device=args.device)
+        values = segment_hulls(renderer, plan.alphas)
+    else:
+        plan = plan_partitions(cloud, im.camera, args.axis, args.radius, args.method, delta=args.delta,
+                               max_partitions=args.max_partitions, min_partitions=args.min_partitions)
+        values = segment_values(cloud, im.camera, plan.axis, plan.alphas, args.background)
+        renderer = Renderer(cloud, im.camera, plan.axis, background=args.background, device=args.device)
     nseg = plan.num_partitions - 1
     per_segment = max(int(args.poses_per_segment), math.ceil(args.min_poses / nseg))
-    values = segment_values(cloud, intr, plan.axis, plan.alphas, args.background)
-    renderer = Renderer(cloud, intr, plan.axis, background=args.background, device=args.device)
     anchors = plan.alphas[anchor_indices(plan.num_partitions, args.num_anchors)]
     report = audit_bounds(renderer, plan.alphas, values, anchor_alphas=anchors, poses_per_segment=per_segment,
                           seed=args.seed)
-    d = {"axis": plan.axis, "unit": UNITS[plan.axis], "method": plan.method, "radius": plan.radius,
+    d = {"axis": plan.axis, "unit": UNITS[plan.axis], "method": plan.method, "imaging": im.kind, "radius": plan.radius,
          "num_partitions": plan.num_partitions, "poses_per_segment": per_segment,
          "anchor_alphas": [float(a) for a in anchors], **report.to_dict()}
-    lines = [f"audit {plan.method} {plan.axis} ±{plan.radius:g} {UNITS[plan.axis]}: "
+    lines = [f"audit {plan.method} {plan.axis} ±{plan.radius:g} {UNITS[plan.axis]} ({im.kind} imaging): "
              + ("OK, no bound violated" if report.ok else f"{len(report.violations)} VIOLATIONS"),
              f"{'partitions':18s}{plan.num_partitions} ({nseg} segments, {per_segment} poses each)",
              f"{'poses checked':18s}{report.poses_checked} ({report.checks} distance checks: pair bound + "

@@ -52,7 +52,7 @@ class CertifyConfig:
     seed: int = 0
     device: str = "cpu"
     batch_size: int = 500
-    coverage: str = "pairwise"
+    coverage: str = "anchors"
     num_anchors: int = 9
     background: float = 0.0
     max_partitions: int = DEFAULT_FRAME_BUDGET
