@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import metrics
 from ..core.motion import PAPER_RADIUS, UNITS
 from .settings import PAPER_CMS_SAMPLES, PRESETS
 
@@ -64,35 +65,37 @@ def table(header: list[str], rows: list[list[Any]]) -> str:
 
 
 def mean(xs) -> float:
-    xs = [float(x) for x in xs if x is not None and math.isfinite(float(x))]
-    return float(np.mean(xs)) if xs else float("nan")
+    """:func:`pws_ros.metrics.mean`, NaN where there is no finite value."""
+    m = metrics.mean(xs)
+    return float("nan") if m is None else m
 
 
 def median(xs) -> float:
-    xs = [float(x) for x in xs if x is not None]
-    return float(np.median(xs)) if xs else float("nan")
+    """:func:`pws_ros.metrics.median`, NaN where there is no finite value."""
+    m = metrics.median(xs)
+    return float("nan") if m is None else m
+
+
+def _outcome(rec: dict) -> metrics.Outcome:
+    return metrics.Outcome(rec.get("status"), float(rec.get("radius") or 0.0), rec.get("method"), bool(rec.get("correct")))
 
 
 def certified_at(rec: dict, r: float) -> bool:
-    """Correct and certified for motions ``[-r, r]`` (``r`` at most the requested radius)."""
-    if rec.get("status") in ("abstain", "error") or not rec.get("correct"):
-        return False
-    if rec.get("method") == "cms":
-        return rec["radius"] > r
-    return rec["radius"] >= r * (1 - 1e-9)
+    """Correct and certified at radius ``r`` (:mod:`pws_ros.metrics`) for a bench record."""
+    o = _outcome(rec)
+    return o.correct and o.certified_at(r)
 
 
 def accuracy(records: list[dict], r: float | None = None) -> tuple[int, int]:
-    """(certified and correct, total) at radius ``r`` (default: each record's requested radius)."""
-    k = sum(1 for x in records if certified_at(x, x["radius_requested"] if r is None else r))
-    return k, len(records)
+    """(certified at ``r`` and correct, total) (default ``r``: each record's requested radius)."""
+    if r is None:
+        return sum(1 for x in records if certified_at(x, x["radius_requested"])), len(records)
+    return metrics.certified_correct([_outcome(x) for x in records], r)
 
 
 def curve_mean(records: list[dict], radius: float) -> float:
     """Mean certified accuracy over the radii ``radius * k / 8``, ``k = 1..8`` (area under the curve)."""
-    if not records:
-        return float("nan")
-    return float(np.mean([accuracy(records, radius * k / CURVE_STEPS)[0] / len(records) for k in range(1, CURVE_STEPS + 1)]))
+    return metrics.curve_mean([_outcome(x) for x in records], radius, CURVE_STEPS)
 
 
 def _sel(records, **kw) -> list[dict]:
@@ -174,14 +177,12 @@ def summarize(res: dict) -> dict[str, Any]:
     curves = {}
     for axis in axes:
         b = PAPER_RADIUS[axis]
-        rs = [b * k / CURVE_STEPS for k in range(CURVE_STEPS + 1)]
+        rs = metrics.radius_grid(b, CURVE_STEPS + 1)
         c = {"radii": rs}
         for m in ("pws", "pws_l", "pws_of"):
             for cov in ("paper", "pairwise", "anchors"):
-                recs = _sel(cert, method=m, coverage=cov, axis=axis)
-                c[f"{m}/{cov}"] = [accuracy(recs, r)[0] / max(1, len(recs)) for r in rs]
-        recs = _sel(cert, method="cms", axis=axis)
-        c["cms"] = [accuracy(recs, r)[0] / max(1, len(recs)) for r in rs]
+                c[f"{m}/{cov}"] = metrics.accuracy_curve([_outcome(x) for x in _sel(cert, method=m, coverage=cov, axis=axis)], rs)
+        c["cms"] = metrics.accuracy_curve([_outcome(x) for x in _sel(cert, method="cms", axis=axis)], rs)
         curves[axis] = c
     out["curves"] = curves
     # sigma
