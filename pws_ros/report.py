@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from . import metrics
+from .core.jsonable import jsonable
 from .core.result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_ERROR, STATUS_NOT_CERTIFIED, Certificate
 
 CSV_COLUMNS = (
@@ -144,24 +145,7 @@ def summarize(records: Sequence[FrameRecord], *, axes: Sequence[str], units: dic
     out["error_reasons"] = dict(sorted(errors.items(), key=lambda kv: -kv[1]))
     if extra:
         out.update(extra)
-    return _jsonable(out)
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, Path):
-        return str(obj)
-    if hasattr(obj, "item") and not isinstance(obj, (str, bytes)):
-        try:
-            obj = obj.item()
-        except (ValueError, AttributeError):
-            obj = obj.tolist()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
+    return jsonable(out, inf="null")
 
 
 # ---- text table ---------------------------------------------------------------------------

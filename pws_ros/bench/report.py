@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from .. import metrics
+from ..core.jsonable import jsonable
 from ..core.motion import PAPER_RADIUS, UNITS
 from .settings import PAPER_CMS_SAMPLES, PRESETS
 
@@ -832,23 +833,6 @@ def render_markdown(res: dict, summ: dict, cl: list[dict], est: dict, plots: lis
     return "\n".join(L) + "\n"
 
 
-def jsonable(obj: Any) -> Any:
-    """Plain JSON types (NaN -> null, inf -> +-1e308, numpy scalars and arrays unwrapped)."""
-    if isinstance(obj, dict):
-        return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return jsonable(obj.tolist())
-    if isinstance(obj, (np.generic,)):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None if math.isnan(obj) else (1e308 if obj > 0 else -1e308)
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
-
-
 def write_report(res: dict, out_dir: str | Path) -> dict[str, Path]:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -862,7 +846,7 @@ def write_report(res: dict, out_dir: str | Path) -> dict[str, Path]:
     res["full_run_estimate"] = est
     res["plots"] = plots
     json_path = out_dir / "bench.json"
-    json_path.write_text(json.dumps(jsonable(res), indent=1, allow_nan=False) + "\n")
+    json_path.write_text(json.dumps(jsonable(res, inf="clamp"), indent=1, allow_nan=False) + "\n")
     md_path = out_dir / "report.md"
     md_path.write_text(render_markdown(res, summ, cl, est, plots))
     return {"json": json_path, "report": md_path, **{p: out_dir / p for p in plots}}
