@@ -7,7 +7,7 @@ import random
 import pytest
 
 from pws_ros import metrics
-from pws_ros.bench import report as bench_report
+from pws_ros.bench import tables as bench_report
 from pws_ros.core.result import Certificate
 from pws_ros.report import FrameRecord, radius_grid, summarize
 
