@@ -25,6 +25,13 @@ def make_plots(res: dict, summ: dict, out_dir: Path) -> list[str]:
     import matplotlib.pyplot as plt
 
     files = []
+
+    def save(fig, name: str) -> None:
+        fig.tight_layout()
+        fig.savefig(out_dir / name, dpi=110)
+        plt.close(fig)
+        files.append(name)
+
     colors = {"pws": "tab:blue", "pws_l": "tab:orange", "pws_of": "tab:green", "cms": "tab:red"}
     # frames needed
     fig, ax = plt.subplots(figsize=(7, 3.6))
@@ -39,10 +46,7 @@ def make_plots(res: dict, summ: dict, out_dir: Path) -> list[str]:
     ax.set_ylabel("frames (median over scenes)")
     ax.set_title("Frames needed per certificate")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(out_dir / "frames.png", dpi=110)
-    plt.close(fig)
-    files.append("frames.png")
+    save(fig, "frames.png")
     # radius curves
     cax = list(summ["curves"])
     fig, axs = plt.subplots(1, len(cax), figsize=(4.2 * len(cax), 3.4), squeeze=False)
@@ -59,10 +63,7 @@ def make_plots(res: dict, summ: dict, out_dir: Path) -> list[str]:
         a.set_ylim(-0.02, 1.02)
         a.set_title(f"{axis} (certified at ±{rr[-1]})")
     axs[0][0].legend(fontsize=6)
-    fig.tight_layout()
-    fig.savefig(out_dir / "radius_curves.png", dpi=110)
-    plt.close(fig)
-    files.append("radius_curves.png")
+    save(fig, "radius_curves.png")
     # sigma
     fig, axs = plt.subplots(1, len(cax), figsize=(4.2 * len(cax), 3.2), squeeze=False)
     for a, axis in zip(axs[0], cax):
@@ -76,10 +77,7 @@ def make_plots(res: dict, summ: dict, out_dir: Path) -> list[str]:
         a.set_ylabel("certified accuracy (PwS-OF)")
         a.set_ylim(-0.02, 1.02)
         a.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(out_dir / "sigma.png", dpi=110)
-    plt.close(fig)
-    files.append("sigma.png")
+    save(fig, "sigma.png")
     # partitions
     fig, ax = plt.subplots(figsize=(5, 3.2))
     Ns = [p["num_partitions"] for p in summ["partitions"]]
@@ -91,10 +89,7 @@ def make_plots(res: dict, summ: dict, out_dir: Path) -> list[str]:
     ax.set_ylim(-0.02, 1.02)
     ax.legend(fontsize=7)
     ax.set_title(f"PwS-OF, {res['settings']['partition_axis']}")
-    fig.tight_layout()
-    fig.savefig(out_dir / "partitions.png", dpi=110)
-    plt.close(fig)
-    files.append("partitions.png")
+    save(fig, "partitions.png")
     # time breakdown
     costs = [c for c in summ["costs"] if c["coverage"] in ("pairwise", "anchors", "cms")]
     fig, ax = plt.subplots(figsize=(8, 3.6))
@@ -107,10 +102,7 @@ def make_plots(res: dict, summ: dict, out_dir: Path) -> list[str]:
     ax.set_xticks(range(len(costs)), labels, fontsize=6)
     ax.set_ylabel("seconds per certificate (mean)")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(out_dir / "time_breakdown.png", dpi=110)
-    plt.close(fig)
-    files.append("time_breakdown.png")
+    save(fig, "time_breakdown.png")
     # scaling
     sc = res["scaling"]
     fig, axs = plt.subplots(1, 3, figsize=(12, 3.3))
@@ -144,10 +136,7 @@ def make_plots(res: dict, summ: dict, out_dir: Path) -> list[str]:
         a.yaxis.set_minor_formatter(NullFormatter())
     axm.yaxis.set_minor_formatter(NullFormatter())
     fig.suptitle(f"Scaling ({sc['axis']}, n = {sc['n']})", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(out_dir / "scaling.png", dpi=110)
-    plt.close(fig)
-    files.append("scaling.png")
+    save(fig, "scaling.png")
     return files
 
 
