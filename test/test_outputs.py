@@ -195,3 +195,30 @@ def test_switches_leave_out_what_is_off():
     assert outputs.frame_error(result.certificates) == ""
     assert outputs.frame_error(result.certificates[1:]) == "projector: lost frame 3"
     assert outputs.summary_line(STAMP, result.certificates).startswith(f"frame {STAMP}: pws_of/anchors tx")
+
+
+def test_replay_writes_every_frame_in_the_published_order(tmp_path, monkeypatch, make_model_file):
+    """End to end through ``Replay.process``: the result bag receives each frame's messages in the order above."""
+    from pws_ros import replay as rp
+    from pws_ros.sim.record import record
+
+    bag = record(tmp_path / "sim", frames=2, width=32, height=24, views_per_scene=1)
+    written = []
+
+    class RecordingWriter(rp.BagWriter):
+        def write(self, topic, msg, log_time_ns, msgtype=None):
+            written.append((log_time_ns, topic))
+            return super().write(topic, msg, log_time_ns, msgtype)
+
+    monkeypatch.setattr(rp, "BagWriter", RecordingWriter)
+    cfg = config_from_params({"model_path": str(make_model_file(input_size=(24, 32))), "axes": ["tx", "tz"], "radius.tx": 0.002,
+                              "radius.tz": 0.002, "n0": 16, "n": 32, "preview_every": 8})
+    res = rp.replay(rp.ReplayOptions(bag=bag, config=cfg, out=tmp_path / "out", write_cloud=True, preview=True, quiet=True))
+    assert len(res.records) == 2
+    stamps = sorted({t for t, _ in written})
+    assert [r.stamp_ns for r in res.records] == stamps
+    for stamp in stamps:
+        topics = [topic.lstrip("/") for t, topic in written if t == stamp]
+        k = topics.count("rendered/preview")
+        assert k >= 2  # every 8th frame and the alpha = 0 frame
+        assert topics == PIPELINE_TOPICS[:4] + ["rendered/preview"] * k + PIPELINE_TOPICS[-2:], topics
