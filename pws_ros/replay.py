@@ -14,8 +14,8 @@ results as a bag (``pws replay``).
    node's online policy on the recorded stamps: a frame that arrives while the (measured)
    certification of an earlier one would still run waits in a one-frame slot and is replaced (dropped)
    by a newer one, exactly as :class:`~pws_ros.bridge.sync.LatestSlot` does live.
-4. Every processed frame is written as the ``pipeline`` node publishes it (builders of
-   :mod:`pws_ros.bridge.msgbuild`), with log time = the source stamp: ``certification``
+4. Every processed frame is written as the ``pipeline`` node publishes it (the same list, in the same
+   order, from :func:`pws_ros.bridge.outputs.frame_outputs`), with log time = the source stamp: ``certification``
    (DiagnosticArray), ``certification/markers`` (MarkerArray), ``plan/poses/<axis>`` (PoseArray);
    optionally ``cloud`` + ``cloud/camera_info``, ``rendered/preview`` and the input topics themselves.
 
@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from .bagio import BagMessage, BagReader, BagWriter, prepare_output
-from .bridge import msgbuild, msgconv
+from .bridge import msgbuild, msgconv, outputs
 from .bridge.config import PwsConfig, depth_info_topic
 from .bridge.inputs import InputAssembler, RawFrame, convert
 from .core.errors import PwsError, require
@@ -60,13 +60,6 @@ TF_STATIC_TOPIC = "/tf_static"
 REALSENSE_STREAM = re.compile(r"^(/device_\d+/sensor_\d+/[A-Za-z]+_\d+)/")
 DEPTH_ENCODINGS = {"16uc1", "mono16", "32fc1"}
 COLOR_ENCODINGS = {"rgb8", "bgr8", "rgba8", "bgra8", "mono8"}
-# what the live pipeline node publishes (relative names; prefixed with the namespace)
-OUT_CERTIFICATION = "certification"
-OUT_MARKERS = "certification/markers"
-OUT_POSES = "plan/poses/{axis}"
-OUT_CLOUD = "cloud"
-OUT_CLOUD_INFO = "cloud/camera_info"
-OUT_PREVIEW = "rendered/preview"
 SIM_DENSE_MARKER = "(regenerated per frame by pws_ros.sim from the ground truth)"
 
 LogFn = Callable[[str, str], None]
@@ -243,7 +236,7 @@ def discover_inputs(bag: BagReader, config: PwsConfig, overrides: dict[str, str]
     clouds = bag.topics_of_type(T_POINTCLOUD2)
     images = bag.topics_of_type(T_IMAGE)
     infos = bag.topics_of_type(T_CAMERA_INFO)
-    images = [t for t in images if not t.endswith("/" + OUT_PREVIEW)]
+    images = [t for t in images if not t.endswith("/" + outputs.PREVIEW)]
     peek_topics = [t for t in clouds + images + infos if bag.topics[t].count != 0]
     first = bag.first_messages(peek_topics, max_scan=20_000) if peek_topics else {}
     decoded: dict[str, Any] = {}
@@ -672,6 +665,19 @@ class Replay:
         if self.writer is not None:
             self.writer.write(self._topic(rel), msg, max(0, int(stamp_ns)))
 
+    def switches(self) -> outputs.OutputSwitches:
+        """What the pipeline node would publish, less what the options leave out."""
+        cfg, o = self.config, self.opts
+        return outputs.OutputSwitches(cloud=o.write_cloud, markers=o.markers and cfg.publish_markers,
+                                      poses=o.poses and cfg.publish_poses, preview=o.preview)
+
+    def _emit(self, header: Any, certs: list[Certificate], stamp_ns: int, *, latency_ms: float, compute_ms: Any,
+              frame: Any = None, result: Any = None) -> None:
+        """Write one frame's outputs (:func:`~pws_ros.bridge.outputs.frame_outputs`) with log time = the source stamp."""
+        for rel, msg in outputs.frame_outputs(self.types, header, certs, node_name=NODE_NAME, latency_ms=latency_ms,
+                                              compute_ms=compute_ms, switches=self.switches(), frame=frame, result=result):
+            self._write(rel, msg, stamp_ns)
+
     # ---- one frame ----
     def process(self, raw: RawFrame, start_s: float | None = None) -> tuple[FrameRecord, float]:
         """Convert and certify one frame, write its outputs; returns the record and the compute seconds."""
@@ -703,8 +709,7 @@ class Replay:
             rec = FrameRecord(index, raw.stamp_ns, frame_id, raw.source, certs, {a: 0.0 for a in cfg.axes},
                               1000.0 * duration, 1000.0 * duration, input_error=str(exc))
             self._finish_record(rec, truth)
-            self._write(OUT_CERTIFICATION, msgbuild.certificates_to_diagnostic_array(
-                header, certs, node_name=NODE_NAME, types=T, latency_ms=rec.latency_ms, compute_ms=0.0), raw.stamp_ns)
+            self._emit(header, certs, raw.stamp_ns, latency_ms=rec.latency_ms, compute_ms=0.0)
             return rec, duration
         if dense_error:
             duration = time.perf_counter() - t0
@@ -722,20 +727,7 @@ class Replay:
             duration = cost
             rec.latency_ms = 1000.0 * (start_s + cost - raw.stamp_ns / 1e9)
         self._finish_record(rec, truth)
-        if self.opts.write_cloud:
-            self._write(OUT_CLOUD, msgbuild.cloud_to_pointcloud2(header, frame.cloud, T), raw.stamp_ns)
-            self._write(OUT_CLOUD_INFO, msgbuild.camera_info_from_intrinsics(header, frame.intrinsics, T), raw.stamp_ns)
-        self._write(OUT_CERTIFICATION, msgbuild.certificates_to_diagnostic_array(
-            header, certs, node_name=NODE_NAME, types=T, latency_ms=rec.latency_ms, compute_ms=compute), raw.stamp_ns)
-        if self.opts.markers and cfg.publish_markers:
-            self._write(OUT_MARKERS, msgbuild.markers_for(header, certs, T), raw.stamp_ns)
-        if result is not None:
-            if self.opts.poses and cfg.publish_poses:
-                for axis, plan in result.plans.items():
-                    self._write(OUT_POSES.format(axis=axis), msgbuild.plan_to_pose_array(header, plan, T), raw.stamp_ns)
-            if self.opts.preview:
-                for _axis, _i, img in result.previews:
-                    self._write(OUT_PREVIEW, msgbuild.image_from_numpy(header, img, T), raw.stamp_ns)
+        self._emit(header, certs, raw.stamp_ns, latency_ms=rec.latency_ms, compute_ms=compute, frame=frame, result=result)
         return rec, duration
 
     def _finish_record(self, rec: FrameRecord, truth: GroundTruth | None) -> None:

@@ -11,9 +11,11 @@ Definitions (per axis, over the frames with ground truth; error frames count as 
 
 - clean accuracy: the smoothed classifier's top class at the recorded pose (the ``n0`` selection
   samples) is the true class;
-- certified accuracy at radius r: that class is right, the frame did not abstain, and its certified
-  radius (the largest covered ``[-radius, radius]``) is at least r; at the requested radius this is
-  "certified and correct".
+- certified accuracy at radius r: that class is right and the certificate is certified at r
+  (:mod:`pws_ros.metrics`: no abstention, no error, and its certified radius covers ``[-r, r]``); at
+  the requested radius this is "certified and correct";
+- fraction certified at radius r (without ground truth): the same over the frames that did not error,
+  correctness aside.
 """
 from __future__ import annotations
 
@@ -22,9 +24,10 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from statistics import median
 from typing import Any, Sequence
 
+from . import metrics
+from .core.jsonable import jsonable
 from .core.result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_ERROR, STATUS_NOT_CERTIFIED, Certificate
 
 CSV_COLUMNS = (
@@ -60,22 +63,8 @@ class FrameRecord:
         return self.truth_label is not None or bool(self.truth_class)
 
 
-def _finite(values: Sequence[float]) -> list[float]:
-    return [float(v) for v in values if v is not None and math.isfinite(float(v))]
-
-
-def _mean(values: Sequence[float]) -> float | None:
-    v = _finite(values)
-    return sum(v) / len(v) if v else None
-
-
-def _median(values: Sequence[float]) -> float | None:
-    v = _finite(values)
-    return float(median(v)) if v else None
-
-
 def radius_grid(requested: float, points: int = CURVE_POINTS) -> list[float]:
-    return [requested * i / (points - 1) for i in range(points)]
+    return metrics.radius_grid(requested, points)
 
 
 def axis_summary(records: Sequence[FrameRecord], axis: str, unit: str, requested: float) -> dict[str, Any]:
@@ -91,12 +80,12 @@ def axis_summary(records: Sequence[FrameRecord], axis: str, unit: str, requested
         "not_certified": status.count(STATUS_NOT_CERTIFIED),
         "abstained": status.count(STATUS_ABSTAIN),
         "errors": status.count(STATUS_ERROR),
-        "radius_mean": _mean([c.radius for _, c in ran]),
-        "radius_median": _median([c.radius for _, c in ran]),
-        "compute_ms_mean": _mean([r.compute_ms.get(axis, float("nan")) for r, _ in ran]),
-        "compute_ms_median": _median([r.compute_ms.get(axis, float("nan")) for r, _ in ran]),
-        "num_partitions_mean": _mean([c.num_partitions for _, c in ran if c.num_partitions]),
-        "classifier_calls_mean": _mean([c.classifier_calls for _, c in ran]),
+        "radius_mean": metrics.mean([c.radius for _, c in ran]),
+        "radius_median": metrics.median([c.radius for _, c in ran]),
+        "compute_ms_mean": metrics.mean([r.compute_ms.get(axis, float("nan")) for r, _ in ran]),
+        "compute_ms_median": metrics.median([r.compute_ms.get(axis, float("nan")) for r, _ in ran]),
+        "num_partitions_mean": metrics.mean([c.num_partitions for _, c in ran if c.num_partitions]),
+        "classifier_calls_mean": metrics.mean([c.classifier_calls for _, c in ran]),
     }
     truth = [(r, c) for r, c in certs if r.has_truth]
     out["with_truth"] = len(truth)
@@ -107,16 +96,15 @@ def axis_summary(records: Sequence[FrameRecord], axis: str, unit: str, requested
         out["clean_accuracy"] = len(right) / n
         out["certified_accuracy"] = sum(1 for _, c in predicted if c.certified) / n
         grid = radius_grid(requested)
-        out["certified_accuracy_vs_radius"] = [[g, sum(1 for _, c in predicted if c.radius >= g - 1e-15 * max(1.0, g)) / n]
-                                               for g in grid]
+        outcomes = [metrics.Outcome.of(c, c.status != STATUS_ERROR and r.correct.get(axis, False)) for r, c in truth]
+        out["certified_accuracy_vs_radius"] = [list(p) for p in zip(grid, metrics.accuracy_curve(outcomes, grid))]
     else:
         out["clean_accuracy"] = None
         out["certified_accuracy"] = None
         out["certified_accuracy_vs_radius"] = None
-    n = len(ran) or 1
-    out["certified_fraction_vs_radius"] = [
-        [g, sum(1 for _, c in ran if c.status != STATUS_ABSTAIN and c.radius >= g - 1e-15 * max(1.0, g)) / n]
-        for g in radius_grid(requested)] if ran else None
+    grid = radius_grid(requested)
+    out["certified_fraction_vs_radius"] = [list(p) for p in zip(grid, metrics.accuracy_curve(
+        [metrics.Outcome.of(c) for _, c in ran], grid))] if ran else None
     return out
 
 
@@ -142,10 +130,10 @@ def summarize(records: Sequence[FrameRecord], *, axes: Sequence[str], units: dic
         "time": {
             "wall_s": wall_s,
             "recording_span_s": span,
-            "per_certificate_ms_mean": _mean(cert_ms),
-            "per_certificate_ms_median": _median(cert_ms),
-            "per_frame_ms_mean": _mean([r.total_ms for r in records if not r.input_error]),
-            "latency_ms_mean": _mean([r.latency_ms for r in records]),
+            "per_certificate_ms_mean": metrics.mean(cert_ms),
+            "per_certificate_ms_median": metrics.median(cert_ms),
+            "per_frame_ms_mean": metrics.mean([r.total_ms for r in records if not r.input_error]),
+            "latency_ms_mean": metrics.mean([r.latency_ms for r in records]),
         },
     }
     errors: dict[str, int] = {}
@@ -157,24 +145,7 @@ def summarize(records: Sequence[FrameRecord], *, axes: Sequence[str], units: dic
     out["error_reasons"] = dict(sorted(errors.items(), key=lambda kv: -kv[1]))
     if extra:
         out.update(extra)
-    return _jsonable(out)
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, Path):
-        return str(obj)
-    if hasattr(obj, "item") and not isinstance(obj, (str, bytes)):
-        try:
-            obj = obj.item()
-        except (ValueError, AttributeError):
-            obj = obj.tolist()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
+    return jsonable(out, inf="null")
 
 
 # ---- text table ---------------------------------------------------------------------------

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from pws_ros.bench import SMOKE, PeakMemory, capped_plan, grid_plan, paper_rule, scene_ids
-from pws_ros.bench.report import accuracy, certified_at
+from pws_ros.bench.tables import accuracy, certified_at
 from pws_ros.cli import main
 from pws_ros.core.bounds import render_plan
 from pws_ros.core.certify import CertifyConfig, certify, certify_rendered

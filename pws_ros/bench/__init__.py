@@ -6,7 +6,9 @@ import sys
 from pathlib import Path
 from typing import Callable
 
-from .report import claims, summarize, write_report
+from .verdicts import claims
+from .report import write_report
+from .tables import summarize
 from .runner import Bench, PeakMemory, capped_plan, grid_plan, paper_rule
 from .settings import FULL, PRESETS, QUICK, SMOKE, BenchSettings, scene_ids
 

@@ -12,4 +12,5 @@ field names, so the same code converts a live message in a node and a recorded o
 - :mod:`.config`   the parameter table (one source of truth) and ``config/pws.yaml`` loading
 - :mod:`.scheme`   the wire scheme of the four-process mode (plans, frames, bounds on topics)
 - :mod:`.engine`   ``FrameCertifier``: the per-frame pipeline (plan, render, certify every axis)
+- :mod:`.outputs`  one frame's outputs in publication order (the nodes publish them, replay writes them)
 """

@@ -29,7 +29,6 @@ Per input frame (source stamp ``S`` in ns, source optical frame ``F``):
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -37,6 +36,7 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics
 from ..core.errors import PwsError, require
+from ..core.jsonable import jsonable
 from ..core.motion import parse_axis
 from .msgbuild import image_from_numpy, make, make_header
 from .msgconv import header_stamp_ns, image_to_numpy
@@ -102,20 +102,6 @@ def _camera_dict(c: CameraIntrinsics) -> dict[str, Any]:
     return {"width": int(c.width), "height": int(c.height), "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "frame_id": c.frame_id}
 
 
-def _jsonable(v: Any) -> Any:
-    if isinstance(v, dict):
-        return {str(k): _jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
-    if isinstance(v, np.ndarray):
-        return _jsonable(v.tolist())
-    if isinstance(v, np.generic):
-        v = v.item()
-    if isinstance(v, float) and not math.isfinite(v):
-        return None if math.isnan(v) else ("inf" if v > 0 else "-inf")
-    return v
-
-
 def plan_bundle_to_json(bundle: PlanBundle) -> str:
     return json.dumps({
         "format": PLAN_FORMAT,
@@ -124,7 +110,7 @@ def plan_bundle_to_json(bundle: PlanBundle) -> str:
         "method": bundle.method,
         "axes": list(bundle.axes),
         "camera": _camera_dict(bundle.camera),
-        "plans": {a: _jsonable(p.to_dict()) for a, p in bundle.plans.items()},
+        "plans": {a: jsonable(p.to_dict(), inf="string") for a, p in bundle.plans.items()},
         "errors": dict(bundle.errors),
         "imaging": bundle.imaging.to_dict() if bundle.imaging is not None else None,
     }, allow_nan=False)

@@ -2,9 +2,10 @@
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import asdict, dataclass, field
 from typing import Any
+
+from .jsonable import jsonable
 
 STATUS_CERTIFIED = "certified"        # the smoothed prediction holds on the whole requested range
 STATUS_NOT_CERTIFIED = "not_certified"  # a prediction was made but the range is not (fully) covered
@@ -58,7 +59,7 @@ class Certificate:
         d["min_p_a_lower"] = self.min_p_a_lower
         if not full and len(self.p_a_lower) > 16:
             d["p_a_lower"] = f"{len(self.p_a_lower)} values, min {self.min_p_a_lower:.6g}"
-        return _jsonable(d)
+        return jsonable(d, inf="clamp")
 
     def to_json(self, **kw) -> str:
         return json.dumps(self.to_dict(), **kw)
@@ -78,18 +79,3 @@ class Certificate:
 def error_certificate(axis: str, unit: str, method: str, coverage: str, radius: float, reason: str, **kw) -> Certificate:
     return Certificate(axis=axis, unit=unit, method=method, coverage=coverage, requested_radius=radius,
                        status=STATUS_ERROR, certified=False, radius=0.0, reason=reason, **kw)
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if hasattr(obj, "item") and not isinstance(obj, (str, bytes)):
-        try:
-            obj = obj.item()
-        except (ValueError, AttributeError):
-            obj = obj.tolist()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None if math.isnan(obj) else (1e308 if obj > 0 else -1e308)
-    return obj

@@ -15,9 +15,10 @@ from __future__ import annotations
 
 import sys
 from collections import OrderedDict
+from dataclasses import replace
 from typing import Any
 
-from ..bridge import msgbuild, scheme
+from ..bridge import msgbuild, outputs, scheme
 from ..bridge.sync import AssembledFrame, AxisSet, PartitionAssembler
 from ..core.errors import PwsError
 from ._common import HealthPublisher, Throttle, Worker, start
@@ -42,8 +43,7 @@ class CertifierNode:
         self.certified = 0
         self.bad_messages = 0
         self.last_frame_error = ""
-        self.pub_cert = ctx.publisher(T.DiagnosticArray, "certification")
-        self.pub_markers = ctx.publisher(T.MarkerArray, "certification/markers")
+        self.pubs = outputs.OutputPublishers(ctx, (outputs.CERTIFICATION, outputs.MARKERS))
         self.worker = Worker("pws-certifier", self._process, ctx.log)
         frames_depth = cfg.frames_qos_depth
         self.subs = [
@@ -120,20 +120,21 @@ class CertifierNode:
 
     # -- certification --
     def _process(self, frame: AssembledFrame) -> None:
-        T = self.ctx.types
         self.engine.config = cfg = self.ctx.config
         result = self.engine.certify_assembled(frame)
-        header = msgbuild.make_header(T, frame.stamp_ns, result.frame_id)
-        if cfg.publish_markers:
-            self.pub_markers.publish(msgbuild.markers_for(header, result.certificates, T))
-        latency_ms = (self.ctx.now_ns() - frame.stamp_ns) / 1e6
-        self.pub_cert.publish(msgbuild.certificates_to_diagnostic_array(
-            header, result.certificates, node_name=self.ctx.name, types=T, latency_ms=latency_ms,
-            compute_ms=result.compute_ms))
+        self._publish(result, cfg)
         self.certified += 1
-        errors = [c for c in result.certificates if c.status == "error"]
-        self.last_frame_error = errors[0].reason if errors and len(errors) == len(result.certificates) else ""
-        self.ctx.log("info", f"frame {frame.stamp_ns}: " + "; ".join(c.summary() for c in result.certificates))
+        self.last_frame_error = outputs.frame_error(result.certificates)
+        self.ctx.log("info", outputs.summary_line(frame.stamp_ns, result.certificates))
+
+    def _publish(self, result: Any, cfg: Any) -> None:
+        """Publish one frame's markers and certification (the other nodes publish its cloud, poses and previews)."""
+        T = self.ctx.types
+        switches = replace(outputs.OutputSwitches.from_config(cfg), cloud=False, poses=False, preview=False)
+        self.pubs.publish(outputs.frame_outputs(
+            T, msgbuild.make_header(T, result.stamp_ns, result.frame_id), result.certificates, node_name=self.ctx.name,
+            latency_ms=(self.ctx.now_ns() - result.stamp_ns) / 1e6, compute_ms=result.compute_ms, switches=switches,
+            result=result))
 
     def _counters(self) -> dict[str, Any]:
         w = self.worker

@@ -17,7 +17,7 @@ from __future__ import annotations
 import sys
 from typing import Any
 
-from ..bridge import msgbuild
+from ..bridge import outputs
 from ..bridge.inputs import RawFrame, convert
 from ..core.errors import PwsError
 from ._common import HealthPublisher, InputFrontend, Worker, start
@@ -33,14 +33,9 @@ class PipelineNode:
 
         self.ctx = ctx
         ctx.on_change = self._on_change
-        T = ctx.types
         self.engine = FrameCertifier(ctx.config, log=ctx.log)  # loads the model now (PwsError -> exit 2)
-        self.pub_cert = ctx.publisher(T.DiagnosticArray, "certification")
-        self.pub_markers = ctx.publisher(T.MarkerArray, "certification/markers")
-        self.pub_cloud = ctx.publisher(T.PointCloud2, "cloud")
-        self.pub_info = ctx.publisher(T.CameraInfo, "cloud/camera_info")
-        self.pub_preview = ctx.publisher(T.Image, "rendered/preview")
-        self.pub_poses: dict[str, Any] = {}
+        self.pubs = outputs.OutputPublishers(ctx, (outputs.CERTIFICATION, outputs.MARKERS, outputs.CLOUD,
+                                                   outputs.CLOUD_INFO, outputs.PREVIEW))
         self.frame_errors = 0
         self.last_frame_error = ""
         self.worker = Worker("pws-pipeline", self._process, ctx.log)
@@ -56,13 +51,8 @@ class PipelineNode:
     def _on_frame(self, raw: RawFrame) -> None:
         self.worker.submit(raw)
 
-    def _poses_pub(self, axis: str) -> Any:
-        if axis not in self.pub_poses:
-            self.pub_poses[axis] = self.ctx.publisher(self.ctx.types.PoseArray, f"plan/poses/{axis}")
-        return self.pub_poses[axis]
-
     def _process(self, raw: RawFrame) -> None:
-        ctx, T = self.ctx, self.ctx.types
+        ctx = self.ctx
         cfg = ctx.config
         self.engine.config = cfg  # parameter changes apply between frames
         try:
@@ -71,31 +61,22 @@ class PipelineNode:
             self.frame_errors += 1
             self.last_frame_error = f"input: {exc}"
             certs = [self.engine.error_for(a, f"input: {exc}") for a in cfg.axes]
-            self.pub_cert.publish(msgbuild.certificates_to_diagnostic_array(
-                raw.header, certs, node_name=ctx.name, types=T,
-                latency_ms=(ctx.now_ns() - raw.stamp_ns) / 1e6, compute_ms=0.0))
+            self._publish(raw, certs, compute_ms=0.0)
             raise
-        if cfg.publish_cloud:
-            self.pub_cloud.publish(msgbuild.cloud_to_pointcloud2(raw.header, frame.cloud, T))
-            self.pub_info.publish(msgbuild.camera_info_from_intrinsics(raw.header, frame.intrinsics, T))
         result = self.engine.process(frame.cloud, frame.intrinsics, raw.stamp_ns, frame_id=raw.header.frame_id,
                                      preview_every=cfg.preview_every if cfg.publish_preview else 0,
                                      should_stop=lambda: self.worker.stopping)
-        # the certification goes last: when it arrives, the frame's poses, previews and markers are out
-        if cfg.publish_poses:
-            for axis, plan in result.plans.items():
-                self._poses_pub(axis).publish(msgbuild.plan_to_pose_array(raw.header, plan, T))
-        for _axis, _index, img in result.previews:
-            self.pub_preview.publish(msgbuild.image_from_numpy(raw.header, img, T))
-        if cfg.publish_markers:
-            self.pub_markers.publish(msgbuild.markers_for(raw.header, result.certificates, T))
-        latency_ms = (ctx.now_ns() - raw.stamp_ns) / 1e6
-        self.pub_cert.publish(msgbuild.certificates_to_diagnostic_array(
-            raw.header, result.certificates, node_name=ctx.name, types=T, latency_ms=latency_ms,
-            compute_ms=result.compute_ms))
-        errors = [c for c in result.certificates if c.status == "error"]
-        self.last_frame_error = errors[0].reason if len(errors) == len(result.certificates) and errors else ""
-        ctx.log("info", f"frame {raw.stamp_ns}: " + "; ".join(c.summary() for c in result.certificates))
+        self._publish(raw, result.certificates, compute_ms=result.compute_ms, frame=frame, result=result)
+        self.last_frame_error = outputs.frame_error(result.certificates)
+        ctx.log("info", outputs.summary_line(raw.stamp_ns, result.certificates))
+
+    def _publish(self, raw: RawFrame, certs: list[Any], *, compute_ms: Any, frame: Any = None, result: Any = None) -> None:
+        """Publish one frame's outputs (:func:`~pws_ros.bridge.outputs.frame_outputs`: the certification last)."""
+        ctx = self.ctx
+        self.pubs.publish(outputs.frame_outputs(
+            ctx.types, raw.header, certs, node_name=ctx.name, latency_ms=(ctx.now_ns() - raw.stamp_ns) / 1e6,
+            compute_ms=compute_ms, switches=outputs.OutputSwitches.from_config(self.engine.config),  # this frame's config
+            frame=frame, result=result))
 
     def _counters(self) -> dict[str, Any]:
         w = self.worker

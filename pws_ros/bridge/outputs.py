@@ -1,0 +1,130 @@
+"""One certified input frame -> the messages it publishes, in publication order (ROS-free).
+
+The ``pipeline`` node, the ``certifier`` node and ``pws replay`` all build a frame's outputs with
+:func:`frame_outputs`: the nodes only publish the list (:class:`OutputPublishers`), replay only writes
+it to its bag. Topics are relative (``certification``, ...): the node's namespace, or replay's
+``--namespace``, is put in front by the caller. The builders are those of
+:mod:`pws_ros.bridge.msgbuild`, so the list holds rclpy or rosbags messages, whichever ``types``
+namespace is passed.
+
+Order (docs/ros2.md, "Outputs"): ``cloud``, ``cloud/camera_info``, ``plan/poses/<axis>`` (in plan
+order, i.e. config axis order), ``rendered/preview`` (in the engine's order), ``certification/markers``
+and ``certification`` **last**: when a frame's certification arrives, everything else it publishes is out.
+
+What is in the list:
+
+- an input that could not be converted (no ``frame``, no ``result``): the certification only (ERROR on
+  every axis, the reason in each status' message);
+- a converted ``frame``: ``cloud`` + ``cloud/camera_info`` when ``switches.cloud``;
+- a ``result`` (:class:`~pws_ros.bridge.engine.FrameResult`): one ``plan/poses/<axis>`` per planned
+  axis when ``switches.poses``, its previews when ``switches.preview``;
+- a converted frame or a result: the markers when ``switches.markers``;
+- always: the certification.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+from ..core.result import STATUS_ERROR, Certificate
+from . import msgbuild
+
+CERTIFICATION = "certification"
+MARKERS = "certification/markers"
+CLOUD = "cloud"
+CLOUD_INFO = "cloud/camera_info"
+POSES = "plan/poses/{axis}"
+PREVIEW = "rendered/preview"
+
+# message class (attribute of a ``types`` namespace) of each output topic
+TOPIC_TYPES: dict[str, str] = {
+    CLOUD: "PointCloud2", CLOUD_INFO: "CameraInfo", POSES: "PoseArray", PREVIEW: "Image",
+    MARKERS: "MarkerArray", CERTIFICATION: "DiagnosticArray",
+}
+_POSES_PREFIX = POSES.split("{")[0]
+
+
+def topic_type(types: Any, rel: str) -> Any:
+    """The message class of output topic ``rel`` (``plan/poses/<axis>`` for every axis)."""
+    key = POSES if rel.startswith(_POSES_PREFIX) else rel
+    return getattr(types, TOPIC_TYPES[key])
+
+
+@dataclass(frozen=True)
+class OutputSwitches:
+    """Which optional outputs a caller publishes (the certification always goes out)."""
+
+    cloud: bool = False
+    markers: bool = True
+    poses: bool = True
+    preview: bool = False
+
+    @classmethod
+    def from_config(cls, cfg: Any) -> "OutputSwitches":
+        return cls(cloud=bool(cfg.publish_cloud), markers=bool(cfg.publish_markers), poses=bool(cfg.publish_poses),
+                   preview=bool(cfg.publish_preview))
+
+
+def frame_outputs(types: Any, header: Any, certificates: Sequence[Certificate], *, node_name: str, latency_ms: float,
+                  compute_ms: Any, switches: OutputSwitches, frame: Any = None, result: Any = None) -> list[tuple[str, Any]]:
+    """``[(relative topic, message), ...]`` of one input frame, in publication order (module docstring).
+
+    ``header``: the source header of every message; ``certificates``: one per configured axis;
+    ``latency_ms`` / ``compute_ms``: as :func:`~pws_ros.bridge.msgbuild.certificates_to_diagnostic_array`
+    takes them; ``frame``: the converted input (``cloud``, ``intrinsics``) or None; ``result``: the
+    engine's :class:`~pws_ros.bridge.engine.FrameResult` (``plans``, ``previews``) or None.
+    """
+    out: list[tuple[str, Any]] = []
+    if frame is not None and switches.cloud:
+        out.append((CLOUD, msgbuild.cloud_to_pointcloud2(header, frame.cloud, types)))
+        out.append((CLOUD_INFO, msgbuild.camera_info_from_intrinsics(header, frame.intrinsics, types)))
+    if result is not None:
+        if switches.poses:
+            for axis, plan in result.plans.items():
+                out.append((POSES.format(axis=axis), msgbuild.plan_to_pose_array(header, plan, types)))
+        if switches.preview:
+            for _axis, _index, img in result.previews:
+                out.append((PREVIEW, msgbuild.image_from_numpy(header, img, types)))
+    if (frame is not None or result is not None) and switches.markers:
+        out.append((MARKERS, msgbuild.markers_for(header, certificates, types)))
+    out.append((CERTIFICATION, msgbuild.certificates_to_diagnostic_array(
+        header, certificates, node_name=node_name, types=types, latency_ms=latency_ms, compute_ms=compute_ms)))
+    return out
+
+
+def frame_error(certificates: Sequence[Certificate]) -> str:
+    """The reason of a frame that failed on every axis ("" otherwise): the nodes' ``last_error``."""
+    errors = [c for c in certificates if c.status == STATUS_ERROR]
+    return errors[0].reason if errors and len(errors) == len(certificates) else ""
+
+
+def summary_line(stamp_ns: int, certificates: Sequence[Certificate]) -> str:
+    """The one log line a node writes per certified frame."""
+    return f"frame {stamp_ns}: " + "; ".join(c.summary() for c in certificates)
+
+
+class OutputPublishers:
+    """Publishes :func:`frame_outputs` lists through a node context (``ctx.publisher(type, topic)``).
+
+    The publishers of ``topics`` are created now, so subscribers can match before the first frame;
+    any other topic (``plan/poses/<axis>``) gets its publisher on first use.
+    """
+
+    def __init__(self, ctx: Any, topics: Sequence[str] = ()):
+        self.ctx = ctx
+        self.pubs: dict[str, Any] = {}
+        for rel in topics:
+            self._pub(rel)
+
+    def _pub(self, rel: str) -> Any:
+        if rel not in self.pubs:
+            self.pubs[rel] = self.ctx.publisher(topic_type(self.ctx.types, rel), rel)
+        return self.pubs[rel]
+
+    def publish(self, outputs: Sequence[tuple[str, Any]]) -> None:
+        for rel, msg in outputs:
+            self._pub(rel).publish(msg)
+
+
+__all__ = ["CERTIFICATION", "CLOUD", "CLOUD_INFO", "MARKERS", "OutputPublishers", "OutputSwitches", "POSES", "PREVIEW",
+           "TOPIC_TYPES", "frame_error", "frame_outputs", "summary_line", "topic_type"]
