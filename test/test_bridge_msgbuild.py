@@ -48,7 +48,7 @@ def test_diagnostic_array_key_schema_and_levels():
     for p in parsed:
         assert p["hardware_id"] == "camera_color_optical_frame"
         assert tuple(p["keys"][:14]) == msgbuild.DIAGNOSTIC_KEYS
-        assert tuple(p["keys"][13:]) == msgbuild.DIAGNOSTIC_EXTRA_KEYS
+        assert tuple(p["keys"][14:]) == msgbuild.DIAGNOSTIC_EXTRA_KEYS
         assert p["values"]["latency_ms"] == "812.5"
     tz = parsed[0]["values"]
     assert tz["label"] == "3" and tz["class_name"] == "mug" and tz["certified"] == "true"
