@@ -19,6 +19,7 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
 from ..bridge.config import SPECS, ParamSpec, PwsConfig, check_consistency, config_from_params, spec_table, validate_param
 from ..bridge.msgbuild import MESSAGE_TYPES
 from ..core.errors import PwsError
+from ._common import ShutdownSafePublisher
 
 try:  # Iron and later
     from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
@@ -221,10 +222,12 @@ class NodeContext:
     def publisher(self, msg_type: Any, topic: str, *, kind: str | None = None, depth: int | None = None) -> Any:
         cfg = self.config
         profile = qos(kind or cfg.output_qos, depth or cfg.output_qos_depth)
-        return self.node.create_publisher(
+        pub = self.node.create_publisher(
             msg_type, topic, profile,
             event_callbacks=PublisherEventCallbacks(incompatible_qos=self._incompatible("publisher", topic)),
             **_overrides())
+        # a worker still busy with a frame when SIGINT shuts the context down publishes nothing
+        return ShutdownSafePublisher(pub, self.node.context.ok)
 
 
 # ---- running ------------------------------------------------------------------------------

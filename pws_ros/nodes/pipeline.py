@@ -20,7 +20,7 @@ from typing import Any
 from ..bridge import msgbuild
 from ..bridge.inputs import RawFrame, convert
 from ..core.errors import PwsError
-from ._common import HealthPublisher, InputFrontend, Worker, start
+from ._common import HealthPublisher, InputFrontend, PosePublishers, Worker, start
 
 NODE_NAME = "pipeline"
 
@@ -40,7 +40,7 @@ class PipelineNode:
         self.pub_cloud = ctx.publisher(T.PointCloud2, "cloud")
         self.pub_info = ctx.publisher(T.CameraInfo, "cloud/camera_info")
         self.pub_preview = ctx.publisher(T.Image, "rendered/preview")
-        self.pub_poses: dict[str, Any] = {}
+        self.poses = PosePublishers(ctx)
         self.frame_errors = 0
         self.last_frame_error = ""
         self.worker = Worker("pws-pipeline", self._process, ctx.log)
@@ -52,14 +52,10 @@ class PipelineNode:
     def _on_change(self, cfg: Any) -> None:
         self.frontend.assembler.config = cfg
         self.frontend.assembler.matcher.tolerance_ns = int(round(cfg.sync_tolerance_s * 1e9))
+        self.poses.update(cfg)
 
     def _on_frame(self, raw: RawFrame) -> None:
         self.worker.submit(raw)
-
-    def _poses_pub(self, axis: str) -> Any:
-        if axis not in self.pub_poses:
-            self.pub_poses[axis] = self.ctx.publisher(self.ctx.types.PoseArray, f"plan/poses/{axis}")
-        return self.pub_poses[axis]
 
     def _process(self, raw: RawFrame) -> None:
         ctx, T = self.ctx, self.ctx.types
@@ -84,7 +80,7 @@ class PipelineNode:
         # the certification goes last: when it arrives, the frame's poses, previews and markers are out
         if cfg.publish_poses:
             for axis, plan in result.plans.items():
-                self._poses_pub(axis).publish(msgbuild.plan_to_pose_array(raw.header, plan, T))
+                self.poses.publish(axis, msgbuild.plan_to_pose_array(raw.header, plan, T))
         for _axis, _index, img in result.previews:
             self.pub_preview.publish(msgbuild.image_from_numpy(raw.header, img, T))
         if cfg.publish_markers:
@@ -109,7 +105,8 @@ class PipelineNode:
             "last_error": self.last_frame_error,
             "warning": self.engine.device_warning,
             "extra": {"busy": w.busy, "input_messages": self.frontend.received, "unmatched_inputs": self.frontend.dropped,
-                      "ignored_inputs": self.frontend.assembler.ignored, "skipped_by_min_period": self.frontend.assembler.skipped},
+                      "ignored_inputs": self.frontend.assembler.ignored, "skipped_by_min_period": self.frontend.assembler.skipped,
+                      "time_jumps_back": self.frontend.time_jumps},
         }
 
     def close(self) -> None:
