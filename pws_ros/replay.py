@@ -18,6 +18,11 @@ results as a bag (``pws replay``).
    :mod:`pws_ros.bridge.msgbuild`), with log time = the source stamp: ``certification``
    (DiagnosticArray), ``certification/markers`` (MarkerArray), ``plan/poses/<axis>`` (PoseArray);
    optionally ``cloud`` + ``cloud/camera_info``, ``rendered/preview`` and the input topics themselves.
+   A frame's messages are written together once it is done, and the bag is flushed after each
+   frame (:meth:`~pws_ros.bagio.BagWriter.flush`). SIGINT and SIGTERM stop the run cleanly
+   (:mod:`pws_ros.interrupt`): the frame in flight is dropped whole, the bag is closed (complete and
+   readable up to the last finished frame), and the summary and report cover the frames done, with
+   ``interrupted`` set and exit status 130 (SIGINT) or 143 (SIGTERM).
 
 Method ``pws`` needs the entire scene cloud: ``dense_cloud_path`` from the config (a static scene), or,
 for recordings of the procedural world, the cloud regenerated per frame by :mod:`pws_ros.sim` from
@@ -42,6 +47,8 @@ from .bridge.inputs import InputAssembler, RawFrame, convert
 from .core.errors import PwsError, require
 from .core.motion import UNITS
 from .core.result import STATUS_ERROR, Certificate
+from .interrupt import Interrupted, StopSignals
+from .progress_log import DEFAULT_INTERVAL_S, Progress
 from .report import FrameRecord, format_table, summarize, write_report
 
 NODE_NAME = "pws_replay"
@@ -87,7 +94,8 @@ class ReplayOptions:
     compress: bool = True
     report_dir: Path | None = None
     quiet: bool = False
-    progress: bool | None = None            # None: a bar when stderr is a terminal and not quiet
+    progress: bool | None = None            # None: a bar on a terminal, else log lines; False: none (also --quiet)
+    progress_interval_s: float = DEFAULT_INTERVAL_S   # seconds between progress log lines (not on a terminal)
     log: LogFn | None = None
     model: Any = None                       # a LoadedModel (tests); else config.model_path
     denoiser: Any = None
@@ -483,6 +491,9 @@ class Replay:
         self.writer: BagWriter | None = None
         self.truth: dict[int, GroundTruth] = {}
         self._truth_stamps: list[int] = []
+        self.stop = StopSignals()               # entered around the frame loop
+        self._out_pending: list[tuple[str, Any, int]] = []   # the messages of the frame in flight
+        self._committed = 0                     # records whose messages are in the bag
 
     # ---- logging ----
     def log(self, level: str, message: str) -> None:
@@ -595,8 +606,19 @@ class Replay:
         return topic_name(self.opts.namespace, rel)
 
     def _write(self, rel: str, msg: Any, stamp_ns: int) -> None:
+        """Queue a message of the frame in flight (written by :meth:`_commit` when the frame is done)."""
         if self.writer is not None:
-            self.writer.write(self._topic(rel), msg, max(0, int(stamp_ns)))
+            self._out_pending.append((self._topic(rel), msg, max(0, int(stamp_ns))))
+
+    def _commit(self) -> None:
+        """Write the finished frame's messages and flush the bag, safe from SIGINT/SIGTERM."""
+        with self.stop.section():
+            if self.writer is not None:
+                for topic, msg, stamp in self._out_pending:
+                    self.writer.write(topic, msg, stamp)
+                self.writer.flush()
+            self._out_pending.clear()
+            self._committed = len(self.records)
 
     # ---- one frame ----
     def process(self, raw: RawFrame, start_s: float | None = None) -> tuple[FrameRecord, float]:
@@ -677,7 +699,7 @@ class Replay:
                     rec.correct[c.axis] = truth.label is not None and int(c.label) == int(truth.label)
         self.records.append(rec)
         if self.bar is not None:
-            self.bar.note = self._note(rec)  # drawn with the next update
+            self.bar.set_note(self._note(rec))  # drawn with the next update
 
     @staticmethod
     def _note(rec: FrameRecord) -> str:
@@ -730,13 +752,18 @@ class Replay:
             if out is not None:
                 prepare_output(out, opts.overwrite)
                 self.writer = BagWriter(out, compress=opts.compress, typestore=self.types.typestore).open()
-            interrupted = False
+            interrupted = ""
             try:
-                scheduler = self._loop(bag, inputs)
-            except KeyboardInterrupt:
-                interrupted = True
+                with self.stop:
+                    scheduler = self._loop(bag, inputs)
+            except KeyboardInterrupt as exc:
+                interrupted = exc.signame if isinstance(exc, Interrupted) else "SIGINT"
                 scheduler = None
-                self.warn("interrupted: writing what was certified so far")
+                # the frame in flight is dropped whole: its record goes with its unwritten messages
+                del self.records[self._committed:]
+                self._out_pending.clear()
+                self.warn(f"interrupted ({interrupted}): the frame in flight is dropped; closing the bag with the "
+                          f"{len(self.records)} frame(s) done")
             finally:
                 if self.bar is not None:
                     self.bar.close()
@@ -756,8 +783,11 @@ class Replay:
         wall = time.perf_counter() - t_wall
         summary = self._summary(inputs, out, dropped, wall, extra_frames, bag_info, counts)
         exit_code, message = self._verdict(inputs)
+        summary["interrupted"] = interrupted or None
         if interrupted:
-            exit_code, message = 130, "interrupted"
+            summary["title"] += f" (interrupted by {interrupted})"
+            exit_code = Interrupted(interrupted).exit_code
+            message = f"interrupted by {interrupted} after {len(self.records)} frame(s); the output and summary cover those"
         summary["exit_code"] = exit_code
         if message:
             summary["message"] = message
@@ -767,8 +797,6 @@ class Replay:
         return result
 
     def _loop(self, bag: BagReader, inputs: InputTopics) -> RealtimeScheduler | None:
-        from .progress import ProgressBar
-
         opts = self.opts
         roles = inputs.roles()
         roles.pop("truth", None)
@@ -778,15 +806,17 @@ class Replay:
         total = bag.topics[total_topic].count if total_topic in bag.topics else None
         if opts.max_frames is not None:
             total = min(total, opts.max_frames) if total else opts.max_frames
-        enabled = None if opts.progress is None else opts.progress
-        if opts.quiet or opts.log is not None:
-            enabled = False if opts.progress is None else opts.progress
-        self.bar = ProgressBar(total, label="pws replay", enabled=enabled)
+        mode = None if opts.progress is None else ("bar" if opts.progress else "off")
+        if opts.quiet or (opts.log is not None and mode is None):
+            mode = "off" if opts.quiet else "log"
+        self.bar = Progress(total, label="pws replay", mode=mode, interval_s=opts.progress_interval_s,
+                            emit=lambda line: self.log("info", line))
 
         scheduler = None
         if opts.realtime:
             def run_one(raw: RawFrame, start: float) -> float:
                 _rec, duration = self.process(raw, start_s=start)
+                self._commit()
                 return duration
 
             scheduler = RealtimeScheduler(run_one, on_drop=lambda raw: None)
@@ -797,7 +827,8 @@ class Replay:
 
             def copy(m: BagMessage) -> None:
                 if m.topic in copy_topics:
-                    self.writer.write_raw(m.topic, m.msgtype, m.data, m.log_time_ns, bag.typestore_for(m.msgtype))
+                    with self.stop.section():
+                        self.writer.write_raw(m.topic, m.msgtype, m.data, m.log_time_ns, bag.typestore_for(m.msgtype))
 
             if inputs.truth:  # the ground truth is not an input of the loop: copy it here
                 for m in bag.messages([inputs.truth]):
@@ -825,6 +856,7 @@ class Replay:
                 scheduler.arrive(raw, raw.stamp_ns / 1e9)
             else:
                 self.process(raw)
+                self._commit()
             self.bar.update(1)
             if opts.max_frames is not None and self.frames_seen >= opts.max_frames:
                 break
