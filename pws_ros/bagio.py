@@ -580,8 +580,8 @@ class BagWriter:
     summary, the footer and ``metadata.yaml`` only in :meth:`close`. :meth:`flush` closes the open
     chunk and flushes the file, so everything written before it is on disk in complete chunks: a
     process killed afterwards (SIGKILL, OOM) leaves an MCAP file without summary and footer that
-    :class:`BagReader` and the ``mcap`` stream reader (or ``mcap recover``) read up to the last
-    flushed chunk; a clean :meth:`close` (what ``pws replay`` does on SIGINT/SIGTERM) leaves a
+    :class:`BagReader` and the ``mcap`` stream reader read up to the last flushed chunk (rosbags
+    needs the summary and metadata.yaml: a copy repaired with ``mcap recover``); a clean :meth:`close` (what ``pws replay`` does on SIGINT/SIGTERM) leaves a
     complete bag.
     """
 

@@ -61,7 +61,7 @@ no camera input, a model that does not load, or every frame failed), with one li
 and complete up to the last finished frame, and the summary/report (marked "interrupted") cover
 the frames done. The bag is flushed after every frame, so even after SIGKILL or an out-of-memory
 kill the .mcap holds every finished frame (no footer nor metadata.yaml then: `pws replay` and the
-mcap stream reader / `mcap recover` read it; `ros2 bag reindex` rebuilds metadata.yaml)."""
+mcap stream reader read it; rosbags and `ros2 bag` need a copy repaired with `mcap recover`)."""
 
 EPILOG = """\
 examples:
