@@ -210,8 +210,10 @@ def discover_inputs(bag: BagReader, config: PwsConfig, overrides: dict[str, str]
     ``depth_info``, ``truth``) first, then the config's topic names when the bag has them, then by
     message type (an organized PointCloud2; a depth + colour Image pair, preferring registered /
     aligned depth of the colour's size; the CameraInfo closest to the colour topic by name; a separate
-    depth CameraInfo, which makes unregistered depth refused)."""
+    depth CameraInfo, which makes unregistered depth refused). An empty ``depth_info`` override, or
+    an empty ``depth_camera_info_topic`` in the config, turns that check off (no depth CameraInfo)."""
     ov = {k: v for k, v in (overrides or {}).items() if v}
+    no_depth_info = (overrides or {}).get("depth_info") == "" or ("depth_info" not in ov and config.depth_camera_info_topic == "")
     flags = {"cloud": "--cloud-topic", "depth": "--depth-topic", "color": "--color-topic", "info": "--info-topic",
              "depth_info": "--depth-info-topic", "truth": "--truth-topic"}
     types = {"cloud": T_POINTCLOUD2, "depth": T_IMAGE, "color": T_IMAGE, "info": T_CAMERA_INFO, "depth_info": T_CAMERA_INFO,
@@ -223,7 +225,7 @@ def discover_inputs(bag: BagReader, config: PwsConfig, overrides: dict[str, str]
     notes: list[str] = []
     for role, name in (("cloud", config.points_topic), ("depth", config.depth_topic), ("color", config.color_topic),
                        ("info", config.camera_info_topic), ("depth_info", depth_info_topic(config))):
-        if role not in chosen:
+        if role not in chosen and not (role == "depth_info" and no_depth_info):
             t = _config_topic(bag, name, types[role])
             if t:
                 chosen[role] = t
@@ -311,7 +313,7 @@ def discover_inputs(bag: BagReader, config: PwsConfig, overrides: dict[str, str]
         elif cands:
             notes.append(f"no CameraInfo of the cloud's size {want[1] if want else '?'}x{want[0] if want else '?'}: "
                          f"intrinsics are estimated from the organized cloud")
-    if "depth_info" not in chosen and chosen.get("depth") and chosen.get("info"):
+    if "depth_info" not in chosen and chosen.get("depth") and chosen.get("info") and not no_depth_info:
         d, c = chosen["depth"], chosen["color"]
         cands = [t for t in infos if t != chosen["info"] and _common_prefix(t, d) > _common_prefix(t, c)]
         cands.sort(key=lambda t: (-_common_prefix(t, d), t))
@@ -872,14 +874,15 @@ class Replay:
                       frames_seen=self.frames_seen, dropped=dropped, wall_s=wall)
         s["frames"].update(extra_frames)
         s["title"] = f"pws replay {bag_info['path']}" + (f" -> {out}" if out else " (no output bag)")
-        s["setup"] = (f"method {cfg.method}, coverage {cfg.coverage}, sigma {cfg.sigma:g}, n0 {cfg.n0}, n {cfg.n}, alpha {cfg.alpha:g}, "
+        coverage = f"coverage {cfg.coverage}, " if cfg.method != "cms" else ""  # cms has no coverage rule
+        s["setup"] = (f"method {cfg.method}, {coverage}sigma {cfg.sigma:g}, n0 {cfg.n0}, n {cfg.n}, alpha {cfg.alpha:g}, "
                       f"seed {cfg.seed}, device {self.engine.device}, {'realtime policy' if self.opts.realtime else 'every frame'}; "
                       + inputs.describe())
         s["bag"] = bag_info
         s["out"] = str(out) if out else None
         s["output_topics"] = counts
         s["inputs"] = {"mode": inputs.mode, **inputs.roles()}
-        s["config"] = {"method": cfg.method, "coverage": cfg.coverage, "axes": axes, "radius": {a: cfg.radius_for(a) for a in axes},
+        s["config"] = {"method": cfg.method, "coverage": cfg.coverage if cfg.method != "cms" else None, "axes": axes, "radius": {a: cfg.radius_for(a) for a in axes},
                        "sigma": cfg.sigma, "n0": cfg.n0, "n": cfg.n, "alpha": cfg.alpha, "seed": cfg.seed, "device": self.engine.device,
                        "batch_size": cfg.batch_size, "model_path": cfg.model_path, "realtime": self.opts.realtime,
                        "dense_cloud": cfg.dense_cloud_path if cfg.method == "pws" else None}

@@ -52,7 +52,8 @@ def add_plan_args(p: argparse.ArgumentParser, methods=PLAN_METHODS, default="pws
     p.add_argument("--delta", type=positive_float, default=None, metavar="D",
                    help=f"PwS-OF delta-convexity constant in pixels (default {DEFAULT_DELTA_PX})")
     p.add_argument("--max-partitions", type=positive_int, default=DEFAULT_MAX_PARTITIONS, metavar="N",
-                   help=f"refuse plans with more partitions than this (default {DEFAULT_MAX_PARTITIONS})")
+                   help=f"plans needing more partitions are made coarser (fewer frames, a smaller certified radius) "
+                        f"(default {DEFAULT_MAX_PARTITIONS})")
     p.add_argument("--min-partitions", type=int, default=0, metavar="N",
                    help="refine the planned grid to at least N partitions (still sound; tighter bounds where the method "
                         "plans only a few frames; default 0 = as planned)")

@@ -149,8 +149,8 @@ def register(subparsers) -> None:
     c.add_argument("--device", default=None, help="cpu or cuda:N (falls back to cpu with a warning)")
     c.add_argument("--batch-size", type=int, default=None, help="images per classifier call")
     c.add_argument("--max-partitions", type=int, default=None,
-                   help="refuse plans needing more partitions than this (an ERROR status for that axis, at once); a quick cap "
-                        "on the cost per frame (default: config max_partitions, 20000)")
+                   help="the cap on the cost per frame: plans needing more partitions are made coarser (fewer frames, a "
+                        "smaller certified radius) (default: config max_partitions, 20000)")
     c.add_argument("--min-partitions", type=int, default=None,
                    help="refine each plan to at least this many partitions (still sound; tightens the bounds where the method "
                         "plans only a few frames; default: config min_partitions)")
@@ -164,7 +164,8 @@ def register(subparsers) -> None:
     i.add_argument("--depth-topic", default=None, help="depth Image topic registered to the colour camera (implies RGB-D input)")
     i.add_argument("--color-topic", default=None, help="colour Image topic")
     i.add_argument("--info-topic", default=None, help="CameraInfo of the colour camera")
-    i.add_argument("--depth-info-topic", default=None, help="CameraInfo of the depth stream (depth whose intrinsics differ is refused)")
+    i.add_argument("--depth-info-topic", default=None, help="CameraInfo of the depth stream (depth whose intrinsics differ is refused); "
+                   "default: the config's depth_camera_info_topic, else found beside the depth topic; \"\" = no such check")
     i.add_argument("--truth-topic", default=None, help="ground-truth DiagnosticArray topic (default: /pws/ground_truth when present)")
     i.add_argument("--sync-tolerance", type=float, default=None, help="largest depth/colour stamp difference of one frame, s (default: config, 0.02)")
     i.add_argument("--max-frames", type=int, default=None, metavar="K", help="stop after K input frames")
@@ -222,7 +223,8 @@ def options_from_args(args: argparse.Namespace):
         interval["progress_interval_s"] = args.progress_interval
     return ReplayOptions(
         bag=Path(args.bag), config=cfg, out=Path(args.out) if args.out else None, overwrite=args.overwrite,
-        write_output=not args.no_output, topics={k: v for k, v in topics.items() if v}, max_frames=args.max_frames,
+        write_output=not args.no_output, topics={k: v for k, v in topics.items() if v or (k == "depth_info" and v == "")},
+        max_frames=args.max_frames,
         realtime=args.realtime, copy_inputs=args.copy_inputs, write_cloud=args.write_cloud, preview=args.preview,
         markers=not args.no_markers, poses=not args.no_poses, namespace=args.namespace, compress=not args.no_compression,
         report_dir=Path(args.report) if args.report else None, quiet=args.quiet, **interval)

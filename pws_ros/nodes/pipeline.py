@@ -46,8 +46,9 @@ class PipelineNode:
         self.worker = Worker("pws-pipeline", self._process, ctx.log)
         self.frontend = InputFrontend(ctx, self._on_frame)
         self.health = HealthPublisher(ctx, self._counters)
+        coverage = f"coverage {ctx.config.coverage}, " if ctx.config.method != "cms" else ""  # cms has no coverage rule
         ctx.log("info", f"pipeline ready: axes {', '.join(ctx.config.axes)}, method {ctx.config.method}, "
-                        f"coverage {ctx.config.coverage}, device {self.engine.device}")
+                        f"{coverage}device {self.engine.device}")
 
     def _on_change(self, cfg: Any) -> None:
         self.frontend.assembler.config = cfg
