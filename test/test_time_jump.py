@@ -181,3 +181,31 @@ def test_publishing_after_shutdown_is_skipped_silently():
     racing.ok = lambda: True  # a failure while the context is up is not hidden
     with pytest.raises(RuntimeError):
         racing.publish(4)
+
+
+def test_a_frame_failing_during_shutdown_is_not_logged_as_an_error():
+    import threading
+
+    from pws_ros.nodes._common import Worker
+
+    logs, started, release = [], threading.Event(), threading.Event()
+
+    def fn(item):
+        started.set()
+        release.wait(5)
+        raise RuntimeError("publisher's context is invalid")
+
+    w = Worker("t", fn, lambda level, msg: logs.append((level, msg)))
+    w.submit(1)
+    assert started.wait(5)
+    w.close(timeout=0)  # shutdown begins while the frame is in flight
+    release.set()
+    w.thread.join(5)
+    assert [lvl for lvl, _m in logs] == ["info"] and "abandoned at shutdown" in logs[0][1]
+    # the same failure while running is an error
+    logs.clear()
+    w2 = Worker("t2", lambda item: (_ for _ in ()).throw(RuntimeError("boom")), lambda level, msg: logs.append((level, msg)))
+    w2.submit(1)
+    assert wait_for(lambda: logs, timeout=5)
+    w2.close()
+    assert logs[0][0] == "error" and "boom" in logs[0][1]

@@ -77,7 +77,10 @@ class Worker:
                 self.log("warn", str(exc))
             except Exception as exc:  # keep the node alive
                 self.last_error = f"{type(exc).__name__}: {exc}"
-                self.log("error", f"worker failed: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+                if self.stopping:  # the node is being torn down under this frame: not an error of the frame
+                    self.log("info", f"frame abandoned at shutdown ({type(exc).__name__}: {exc})")
+                else:
+                    self.log("error", f"worker failed: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
             finally:
                 self.busy = False
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import array
 import threading
+import time
 from types import SimpleNamespace
 from typing import Any, Callable
 
@@ -165,8 +166,13 @@ class NodeContext:
         self.types = rclpy_types()
         self.config = declare_from_table(node, node_kind)
         self.qos_events = 0
+        self.closing = False  # set by run() before the node is torn down
         self.on_change: Callable[[PwsConfig], None] | None = None
         self.watcher = ParamWatcher(node, node_kind, self.config, self._changed)
+
+    def ok(self) -> bool:
+        """False once shutdown began (SIGINT shut the context down, or run() is tearing the node down)."""
+        return not self.closing and self.node.context.ok()
 
     def _changed(self, cfg: PwsConfig) -> None:
         self.config = cfg
@@ -196,7 +202,12 @@ class NodeContext:
 
     def now_ns(self) -> int:
         """Node clock now (sim time when use_sim_time is set)."""
-        return int(self.node.get_clock().now().nanoseconds)
+        try:
+            return int(self.node.get_clock().now().nanoseconds)
+        except Exception:  # the node is being torn down under a busy worker
+            if self.ok():
+                raise
+            return time.time_ns()  # nothing is published any more: any clock will do
 
     def _incompatible(self, what: str, topic: str) -> Callable[[Any], None]:
         def cb(event: Any) -> None:
@@ -227,7 +238,7 @@ class NodeContext:
             event_callbacks=PublisherEventCallbacks(incompatible_qos=self._incompatible("publisher", topic)),
             **_overrides())
         # a worker still busy with a frame when SIGINT shuts the context down publishes nothing
-        return ShutdownSafePublisher(pub, self.node.context.ok)
+        return ShutdownSafePublisher(pub, self.ok)
 
 
 # ---- running ------------------------------------------------------------------------------
@@ -254,6 +265,9 @@ def run(node_name: str, factory: Callable[[Node], Any], args: list[str] | None =
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        ctx = getattr(logic, "ctx", None)
+        if ctx is not None:
+            ctx.closing = True  # a worker still busy publishes nothing from now on
         if logic is not None and hasattr(logic, "close"):
             logic.close()
         node.destroy_node()
