@@ -755,29 +755,30 @@ class Replay:
                 prepare_output(out, opts.overwrite)
                 self.writer = BagWriter(out, compress=opts.compress, typestore=self.types.typestore).open()
             interrupted = ""
-            try:
-                with self.stop:
+            with self.stop:  # until the bag is closed: a second signal cannot cut the clean-up
+                try:
                     scheduler = self._loop(bag, inputs)
-            except KeyboardInterrupt as exc:
-                interrupted = exc.signame if isinstance(exc, Interrupted) else "SIGINT"
-                scheduler = None
-                # the frame in flight is dropped whole: its record goes with its unwritten messages
-                del self.records[self._committed:]
-                self._out_pending.clear()
-                self.warn(f"interrupted ({interrupted}): the frame in flight is dropped; closing the bag with the "
-                          f"{len(self.records)} frame(s) done")
-            finally:
-                if self.bar is not None:
-                    self.bar.close()
-                counts = {}
-                if self.writer is not None:
-                    counts = dict(self.writer.counts)
-                    self.writer.close()
-                    if not counts:
-                        import shutil
+                except KeyboardInterrupt as exc:
+                    interrupted = exc.signame if isinstance(exc, Interrupted) else "SIGINT"
+                    scheduler = None
+                    # the frame in flight is dropped whole: its record goes with its unwritten messages
+                    del self.records[self._committed:]
+                    self._out_pending.clear()
+                    self.warn(f"interrupted ({interrupted}): the frame in flight is dropped; closing the bag with the "
+                              f"{len(self.records)} frame(s) done")
+                finally:
+                    with self.stop.section():
+                        if self.bar is not None:
+                            self.bar.close()
+                        counts = {}
+                        if self.writer is not None:
+                            counts = dict(self.writer.counts)
+                            self.writer.close()
+                            if not counts:
+                                import shutil
 
-                        shutil.rmtree(out, ignore_errors=True)
-                        out = None
+                                shutil.rmtree(out, ignore_errors=True)
+                                out = None
             dropped = scheduler.dropped if scheduler is not None else 0
             extra_frames = {"unmatched_inputs": self.assembler.dropped, "ignored_inputs": self.assembler.ignored}
             bag_info = {"path": str(bag_path), "storage": bag.storage, "layout": bag.layout, "backend": bag.backend,

@@ -9,7 +9,7 @@ from pws_ros import cli
 from pws_ros.bridge import msgbuild
 from pws_ros.core.camera import CameraIntrinsics
 from pws_ros.core.cloud import Cloud
-from test_replay import TINY, TOPIC_DEPTH, TOPIC_INFO, certifications, models, run_cli, sim_bag, sim_msgs, write_bag  # noqa: F401
+from test_replay import TINY, TOPIC_INFO, certifications, models, run_cli, sim_bag, sim_msgs, write_bag  # noqa: F401
 
 T = msgbuild.rosbags_types()
 DEPTH_INFO = "/camera/aligned_depth_to_color/camera_info"
