@@ -790,7 +790,7 @@ class Replay:
         if interrupted:
             summary["title"] += f" (interrupted by {interrupted})"
             exit_code = Interrupted(interrupted).exit_code
-            message = f"interrupted by {interrupted} after {len(self.records)} frame(s); the output and summary cover those"
+            message = f"stopped by {interrupted} after {len(self.records)} frame(s); the output and summary cover those"
         summary["exit_code"] = exit_code
         if message:
             summary["message"] = message

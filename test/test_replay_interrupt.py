@@ -66,7 +66,7 @@ def test_sigterm_closes_a_readable_bag_and_a_summary_marked_interrupted(make_mod
     reader.join(5)
     stderr = "".join(err_lines)
     assert proc.returncode == 143, stderr
-    assert "pws replay: interrupted: interrupted by SIGTERM" in stderr
+    assert "pws replay: interrupted: stopped by SIGTERM after" in stderr
     summary = json.loads(stdout)
     done = summary["frames"]["processed"]
     assert summary["interrupted"] == "SIGTERM" and summary["exit_code"] == 143 and 1 <= done < 36
