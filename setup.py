@@ -29,6 +29,7 @@ setup(
         "rosbags>=0.10",
         "PyYAML>=6",
         "matplotlib>=3.7",
+        "tqdm>=4.60",
     ],
     extras_require={"test": ["pytest>=7", "hypothesis>=6"]},
     zip_safe=True,

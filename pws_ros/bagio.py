@@ -575,6 +575,14 @@ class BagWriter:
 
     :meth:`write` serializes a rosbags message of :attr:`typestore` (topics are added on first use);
     :meth:`write_raw` copies CDR bytes with the definition of another typestore (``--copy-inputs``).
+
+    Crash safety: rosbags keeps the open chunk (up to 1 MiB of messages) in memory and writes the
+    summary, the footer and ``metadata.yaml`` only in :meth:`close`. :meth:`flush` closes the open
+    chunk and flushes the file, so everything written before it is on disk in complete chunks: a
+    process killed afterwards (SIGKILL, OOM) leaves an MCAP file without summary and footer that
+    :class:`BagReader` and the ``mcap`` stream reader read up to the last flushed chunk (rosbags
+    needs the summary and metadata.yaml: a copy repaired with ``mcap recover``); a clean :meth:`close` (what ``pws replay`` does on SIGINT/SIGTERM) leaves a
+    complete bag.
     """
 
     def __init__(self, path: str | Path, *, overwrite: bool = False, compress: bool = True, typestore: Any = None):
@@ -639,6 +647,19 @@ class BagWriter:
         conn = self._conn(topic, msgtype, typestore)
         self._writer.write(conn, int(log_time_ns), bytes(data))
         self.counts[topic] += 1
+
+    def flush(self) -> bool:
+        """Close the open MCAP chunk and flush the file (see the class docstring); False when this
+        rosbags version does not expose its MCAP storage (then the data stays buffered until close)."""
+        storage = getattr(self._writer, "storage", None)
+        chunk = getattr(storage, "chunk", None)
+        bio = getattr(storage, "bio", None)
+        if chunk is None or bio is None or not hasattr(storage, "close_chunk") or not hasattr(chunk, "bio"):
+            return False
+        if chunk.bio.tell():
+            storage.close_chunk()
+        bio.flush()
+        return True
 
     def close(self) -> None:
         w, self._writer = self._writer, None

@@ -18,6 +18,11 @@ results as a bag (``pws replay``).
    order, from :func:`pws_ros.bridge.outputs.frame_outputs`), with log time = the source stamp: ``certification``
    (DiagnosticArray), ``certification/markers`` (MarkerArray), ``plan/poses/<axis>`` (PoseArray);
    optionally ``cloud`` + ``cloud/camera_info``, ``rendered/preview`` and the input topics themselves.
+   A frame's messages are written together once it is done, and the bag is flushed after each
+   frame (:meth:`~pws_ros.bagio.BagWriter.flush`). SIGINT and SIGTERM stop the run cleanly
+   (:mod:`pws_ros.interrupt`): the frame in flight is dropped whole, the bag is closed (complete and
+   readable up to the last finished frame), and the summary and report cover the frames done, with
+   ``interrupted`` set and exit status 130 (SIGINT) or 143 (SIGTERM).
 
 Method ``pws`` needs the entire scene cloud: ``dense_cloud_path`` from the config (a static scene), or,
 for recordings of the procedural world, the cloud regenerated per frame by :mod:`pws_ros.sim` from
@@ -44,6 +49,8 @@ from .core.errors import PwsError, require
 from .core.motion import UNITS
 from .core.registration import Extrinsic, chain_transform
 from .core.result import STATUS_ERROR, Certificate
+from .interrupt import Interrupted, StopSignals
+from .progress_log import DEFAULT_INTERVAL_S, Progress
 from .report import FrameRecord, format_table, summarize, write_report
 
 NODE_NAME = "pws_replay"
@@ -88,7 +95,8 @@ class ReplayOptions:
     compress: bool = True
     report_dir: Path | None = None
     quiet: bool = False
-    progress: bool | None = None            # None: a bar when stderr is a terminal and not quiet
+    progress: bool | None = None            # None: a bar on a terminal, else log lines; False: none (also --quiet)
+    progress_interval_s: float = DEFAULT_INTERVAL_S   # seconds between progress log lines (not on a terminal)
     log: LogFn | None = None
     model: Any = None                       # a LoadedModel (tests); else config.model_path
     denoiser: Any = None
@@ -209,8 +217,11 @@ def discover_inputs(bag: BagReader, config: PwsConfig, overrides: dict[str, str]
     message type (an organized PointCloud2; a depth + colour Image pair, preferring registered /
     aligned depth of the colour's size; the CameraInfo closest to the colour topic by name; a separate
     depth CameraInfo; for depth that is not registered, the depth -> colour extrinsic from the
-    RealSense recorder's ``.../tf/<group>`` topics or ``/tf_static``, without which it is refused)."""
+    RealSense recorder's ``.../tf/<group>`` topics or ``/tf_static``, without which it is refused). An
+    empty ``depth_info`` override, or an empty ``depth_camera_info_topic`` in the config, turns that check
+    off (no depth CameraInfo)."""
     ov = {k: v for k, v in (overrides or {}).items() if v}
+    no_depth_info = (overrides or {}).get("depth_info") == "" or ("depth_info" not in ov and config.depth_camera_info_topic == "")
     flags = {"cloud": "--cloud-topic", "depth": "--depth-topic", "color": "--color-topic", "info": "--info-topic",
              "depth_info": "--depth-info-topic", "truth": "--truth-topic"}
     types = {"cloud": T_POINTCLOUD2, "depth": T_IMAGE, "color": T_IMAGE, "info": T_CAMERA_INFO, "depth_info": T_CAMERA_INFO,
@@ -222,7 +233,7 @@ def discover_inputs(bag: BagReader, config: PwsConfig, overrides: dict[str, str]
     notes: list[str] = []
     for role, name in (("cloud", config.points_topic), ("depth", config.depth_topic), ("color", config.color_topic),
                        ("info", config.camera_info_topic), ("depth_info", depth_info_topic(config))):
-        if role not in chosen:
+        if role not in chosen and not (role == "depth_info" and no_depth_info):
             t = _config_topic(bag, name, types[role])
             if t:
                 chosen[role] = t
@@ -310,7 +321,7 @@ def discover_inputs(bag: BagReader, config: PwsConfig, overrides: dict[str, str]
         elif cands:
             notes.append(f"no CameraInfo of the cloud's size {want[1] if want else '?'}x{want[0] if want else '?'}: "
                          f"intrinsics are estimated from the organized cloud")
-    if "depth_info" not in chosen and chosen.get("depth") and chosen.get("info"):
+    if "depth_info" not in chosen and chosen.get("depth") and chosen.get("info") and not no_depth_info:
         d, c = chosen["depth"], chosen["color"]
         cands = [t for t in infos if t != chosen["info"] and _common_prefix(t, d) > _common_prefix(t, c)]
         cands.sort(key=lambda t: (-_common_prefix(t, d), t))
@@ -550,6 +561,9 @@ class Replay:
         self.writer: BagWriter | None = None
         self.truth: dict[int, GroundTruth] = {}
         self._truth_stamps: list[int] = []
+        self.stop = StopSignals()               # entered around the frame loop
+        self._out_pending: list[tuple[str, Any, int]] = []   # the messages of the frame in flight
+        self._committed = 0                     # records whose messages are in the bag
 
     # ---- logging ----
     def log(self, level: str, message: str) -> None:
@@ -662,8 +676,19 @@ class Replay:
         return topic_name(self.opts.namespace, rel)
 
     def _write(self, rel: str, msg: Any, stamp_ns: int) -> None:
+        """Queue a message of the frame in flight (written by :meth:`_commit` when the frame is done)."""
         if self.writer is not None:
-            self.writer.write(self._topic(rel), msg, max(0, int(stamp_ns)))
+            self._out_pending.append((self._topic(rel), msg, max(0, int(stamp_ns))))
+
+    def _commit(self) -> None:
+        """Write the finished frame's messages and flush the bag, safe from SIGINT/SIGTERM."""
+        with self.stop.section():
+            if self.writer is not None:
+                for topic, msg, stamp in self._out_pending:
+                    self.writer.write(topic, msg, stamp)
+                self.writer.flush()
+            self._out_pending.clear()
+            self._committed = len(self.records)
 
     def switches(self) -> outputs.OutputSwitches:
         """What the pipeline node would publish, less what the options leave out."""
@@ -743,7 +768,7 @@ class Replay:
                     rec.correct[c.axis] = truth.label is not None and int(c.label) == int(truth.label)
         self.records.append(rec)
         if self.bar is not None:
-            self.bar.note = self._note(rec)  # drawn with the next update
+            self.bar.set_note(self._note(rec))  # drawn with the next update
 
     @staticmethod
     def _note(rec: FrameRecord) -> str:
@@ -797,25 +822,31 @@ class Replay:
             if out is not None:
                 prepare_output(out, opts.overwrite)
                 self.writer = BagWriter(out, compress=opts.compress, typestore=self.types.typestore).open()
-            interrupted = False
-            try:
-                scheduler = self._loop(bag, inputs)
-            except KeyboardInterrupt:
-                interrupted = True
-                scheduler = None
-                self.warn("interrupted: writing what was certified so far")
-            finally:
-                if self.bar is not None:
-                    self.bar.close()
-                counts = {}
-                if self.writer is not None:
-                    counts = dict(self.writer.counts)
-                    self.writer.close()
-                    if not counts:
-                        import shutil
+            interrupted = ""
+            with self.stop:  # until the bag is closed: a second signal cannot cut the clean-up
+                try:
+                    scheduler = self._loop(bag, inputs)
+                except KeyboardInterrupt as exc:
+                    interrupted = exc.signame if isinstance(exc, Interrupted) else "SIGINT"
+                    scheduler = None
+                    # the frame in flight is dropped whole: its record goes with its unwritten messages
+                    del self.records[self._committed:]
+                    self._out_pending.clear()
+                    self.warn(f"interrupted ({interrupted}): the frame in flight is dropped; closing the bag with the "
+                              f"{len(self.records)} frame(s) done")
+                finally:
+                    with self.stop.section():
+                        if self.bar is not None:
+                            self.bar.close()
+                        counts = {}
+                        if self.writer is not None:
+                            counts = dict(self.writer.counts)
+                            self.writer.close()
+                            if not counts:
+                                import shutil
 
-                        shutil.rmtree(out, ignore_errors=True)
-                        out = None
+                                shutil.rmtree(out, ignore_errors=True)
+                                out = None
             dropped = scheduler.dropped if scheduler is not None else 0
             extra_frames = {"unmatched_inputs": self.assembler.dropped, "ignored_inputs": self.assembler.ignored}
             bag_info = {"path": str(bag_path), "storage": bag.storage, "layout": bag.layout, "backend": bag.backend,
@@ -823,8 +854,11 @@ class Replay:
         wall = time.perf_counter() - t_wall
         summary = self._summary(inputs, out, dropped, wall, extra_frames, bag_info, counts)
         exit_code, message = self._verdict(inputs)
+        summary["interrupted"] = interrupted or None
         if interrupted:
-            exit_code, message = 130, "interrupted"
+            summary["title"] += f" (interrupted by {interrupted})"
+            exit_code = Interrupted(interrupted).exit_code
+            message = f"stopped by {interrupted} after {len(self.records)} frame(s); the output and summary cover those"
         summary["exit_code"] = exit_code
         if message:
             summary["message"] = message
@@ -834,8 +868,6 @@ class Replay:
         return result
 
     def _loop(self, bag: BagReader, inputs: InputTopics) -> RealtimeScheduler | None:
-        from .progress import ProgressBar
-
         opts = self.opts
         roles = inputs.roles()
         roles.pop("truth", None)
@@ -845,15 +877,17 @@ class Replay:
         total = bag.topics[total_topic].count if total_topic in bag.topics else None
         if opts.max_frames is not None:
             total = min(total, opts.max_frames) if total else opts.max_frames
-        enabled = None if opts.progress is None else opts.progress
-        if opts.quiet or opts.log is not None:
-            enabled = False if opts.progress is None else opts.progress
-        self.bar = ProgressBar(total, label="pws replay", enabled=enabled)
+        mode = None if opts.progress is None else ("bar" if opts.progress else "off")
+        if opts.quiet or (opts.log is not None and mode is None):
+            mode = "off" if opts.quiet else "log"
+        self.bar = Progress(total, label="pws replay", mode=mode, interval_s=opts.progress_interval_s,
+                            emit=lambda line: self.log("info", line))
 
         scheduler = None
         if opts.realtime:
             def run_one(raw: RawFrame, start: float) -> float:
                 _rec, duration = self.process(raw, start_s=start)
+                self._commit()
                 return duration
 
             scheduler = RealtimeScheduler(run_one, on_drop=lambda raw: None)
@@ -864,7 +898,8 @@ class Replay:
 
             def copy(m: BagMessage) -> None:
                 if m.topic in copy_topics:
-                    self.writer.write_raw(m.topic, m.msgtype, m.data, m.log_time_ns, bag.typestore_for(m.msgtype))
+                    with self.stop.section():
+                        self.writer.write_raw(m.topic, m.msgtype, m.data, m.log_time_ns, bag.typestore_for(m.msgtype))
 
             if inputs.truth:  # the ground truth is not an input of the loop: copy it here
                 for m in bag.messages([inputs.truth]):
@@ -892,6 +927,7 @@ class Replay:
                 scheduler.arrive(raw, raw.stamp_ns / 1e9)
             else:
                 self.process(raw)
+                self._commit()
             self.bar.update(1)
             if opts.max_frames is not None and self.frames_seen >= opts.max_frames:
                 break
@@ -907,14 +943,15 @@ class Replay:
                       frames_seen=self.frames_seen, dropped=dropped, wall_s=wall)
         s["frames"].update(extra_frames)
         s["title"] = f"pws replay {bag_info['path']}" + (f" -> {out}" if out else " (no output bag)")
-        s["setup"] = (f"method {cfg.method}, coverage {cfg.coverage}, sigma {cfg.sigma:g}, n0 {cfg.n0}, n {cfg.n}, alpha {cfg.alpha:g}, "
+        coverage = f"coverage {cfg.coverage}, " if cfg.method != "cms" else ""  # cms has no coverage rule
+        s["setup"] = (f"method {cfg.method}, {coverage}sigma {cfg.sigma:g}, n0 {cfg.n0}, n {cfg.n}, alpha {cfg.alpha:g}, "
                       f"seed {cfg.seed}, device {self.engine.device}, {'realtime policy' if self.opts.realtime else 'every frame'}; "
                       + inputs.describe())
         s["bag"] = bag_info
         s["out"] = str(out) if out else None
         s["output_topics"] = counts
         s["inputs"] = {"mode": inputs.mode, **inputs.roles()}
-        s["config"] = {"method": cfg.method, "coverage": cfg.coverage, "axes": axes, "radius": {a: cfg.radius_for(a) for a in axes},
+        s["config"] = {"method": cfg.method, "coverage": cfg.coverage if cfg.method != "cms" else None, "axes": axes, "radius": {a: cfg.radius_for(a) for a in axes},
                        "sigma": cfg.sigma, "n0": cfg.n0, "n": cfg.n, "alpha": cfg.alpha, "seed": cfg.seed, "device": self.engine.device,
                        "batch_size": cfg.batch_size, "model_path": cfg.model_path, "realtime": self.opts.realtime,
                        "dense_cloud": cfg.dense_cloud_path if cfg.method == "pws" else None}

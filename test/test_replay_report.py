@@ -1,16 +1,13 @@
-"""The replay summary / report (pws_ros.report) against brute force, and the progress bar."""
+"""The replay summary / report (pws_ros.report) against brute force."""
 from __future__ import annotations
 
 import csv
-import io
 import json
-import math
 import random
 
 import pytest
 
 from pws_ros.core.result import Certificate
-from pws_ros.progress import ProgressBar, eta_seconds, format_bar, format_duration
 from pws_ros.report import FrameRecord, format_table, radius_grid, summarize, write_report
 
 STATUSES = ("certified", "not_certified", "abstain", "error")
@@ -103,41 +100,3 @@ def test_write_report_files(tmp_path):
     empty = summarize([], axes=["tz"], units={"tz": "m"}, requested={"tz": 0.01}, frames_seen=0)
     write_report(tmp_path / "rep2", [], empty, ["tz"])
     assert (tmp_path / "rep2" / "frames.png").exists()
-
-
-# ---- progress bar ------------------------------------------------------------------------------
-
-class FakeTTY(io.StringIO):
-    def isatty(self):
-        return True
-
-
-def test_progress_is_silent_without_a_terminal_or_when_disabled():
-    for stream, enabled in ((io.StringIO(), None), (FakeTTY(), False)):
-        bar = ProgressBar(10, stream=stream, enabled=enabled)
-        for _ in range(10):
-            bar.update(1, note="x")
-        bar.close()
-        assert stream.getvalue() == ""
-
-
-def test_progress_on_a_terminal_shows_count_and_eta():
-    t = [0.0]
-    stream = FakeTTY()
-    bar = ProgressBar(4, stream=stream, label="replay", min_interval=0.0, clock=lambda: t[0])
-    for _ in range(2):
-        t[0] += 5.0
-        bar.update(1, note="tz ok")
-    text = stream.getvalue()
-    assert "2/4" in text and "50%" in text and "0:10 < 0:10" in text and "tz ok" in text
-    bar.close()
-    assert stream.getvalue().endswith("\n")
-
-
-def test_eta_and_durations():
-    assert eta_seconds(2, 4, 10.0) == pytest.approx(10.0)
-    assert math.isnan(eta_seconds(0, 4, 10.0)) and math.isnan(eta_seconds(3, None, 1.0))
-    assert format_duration(3725) == "1:02:05" and format_duration(65) == "1:05" and format_duration(float("nan")) == "?"
-    line = format_bar(3, 10, 6.0, label="x", note="a" * 500, width=60)
-    assert len(line) < 60 and "3/10" in line
-    assert "7 frames" in format_bar(7, None, 2.0)

@@ -106,24 +106,32 @@ def summary_line(stamp_ns: int, certificates: Sequence[Certificate]) -> str:
 class OutputPublishers:
     """Publishes :func:`frame_outputs` lists through a node context (``ctx.publisher(type, topic)``).
 
-    The publishers of ``topics`` are created now, so subscribers can match before the first frame;
-    any other topic (``plan/poses/<axis>``) gets its publisher on first use.
+    Every publisher is created up front (``topics``, and ``plan/poses/<axis>`` for ``axes``; again on a
+    parameter change with :meth:`update_axes`), in the node's callbacks, never from the worker thread,
+    which may still run after shutdown began (creating a publisher then fails). A list naming a topic
+    without a publisher skips it.
     """
 
-    def __init__(self, ctx: Any, topics: Sequence[str] = ()):
+    def __init__(self, ctx: Any, topics: Sequence[str] = (), axes: Sequence[str] = ()):
         self.ctx = ctx
         self.pubs: dict[str, Any] = {}
         for rel in topics:
-            self._pub(rel)
+            self._create(rel)
+        self.update_axes(axes)
 
-    def _pub(self, rel: str) -> Any:
+    def _create(self, rel: str) -> None:
         if rel not in self.pubs:
             self.pubs[rel] = self.ctx.publisher(topic_type(self.ctx.types, rel), rel)
-        return self.pubs[rel]
+
+    def update_axes(self, axes: Sequence[str]) -> None:
+        for axis in axes:
+            self._create(POSES.format(axis=axis))
 
     def publish(self, outputs: Sequence[tuple[str, Any]]) -> None:
         for rel, msg in outputs:
-            self._pub(rel).publish(msg)
+            pub = self.pubs.get(rel)
+            if pub is not None:
+                pub.publish(msg)
 
 
 __all__ = ["CERTIFICATION", "CLOUD", "CLOUD_INFO", "MARKERS", "OutputPublishers", "OutputSwitches", "POSES", "PREVIEW",

@@ -9,6 +9,15 @@
   ``(stamp, axis)`` by index against the expected count; a lost (gap), duplicate or out-of-range
   index, a count that disagrees with the plan, or a timeout makes the set *failed*: an incomplete
   partition set is never certified.
+
+Time that jumps back (``ros2 bag play --loop``, a restarted driver, a reset simulation clock): every
+stamp-ordered piece here treats a stamp more than ``jump_back_tolerance_ns`` (default
+:data:`JUMP_BACK_TOLERANCE_NS`, 1 s) older than its newest match/frame as a new timeline, as tf2
+does: it counts the jump in ``time_jumps``, reports it once through ``on_time_jump(text)`` (the
+nodes log it as WARN) and resets, so the new pass is matched and certified instead of being dropped
+as "late" forever. What was buffered from before the jump is dropped and counted (the assembler
+releases its incomplete sets as failed), so every input frame is still either answered or counted.
+:class:`LatestSlot` keeps no stamps and needs no reset.
 """
 from __future__ import annotations
 
@@ -21,6 +30,14 @@ from typing import Any, Callable, Generic, Iterable, TypeVar
 from ..core.errors import require
 
 T = TypeVar("T")
+
+JUMP_BACK_TOLERANCE_NS = 1_000_000_000
+"""A stamp older than the newest match/frame by more than this (1 s) starts a new timeline."""
+
+
+def _jump_text(what: str, back_ns: int, stamp_ns: int) -> str:
+    return (f"{what}: time jumped back by {back_ns / 1e9:.3f} s (to stamp {stamp_ns}; a looped bag, a restarted "
+            f"driver or a reset clock): starting over, what was buffered before the jump is dropped")
 
 
 # ---- stamp matching -----------------------------------------------------------------------
@@ -45,16 +62,24 @@ class StampMatcher:
     message whose stamp is within ``tolerance_ns`` of the reference stream's (the first of
     ``streams``; the closest candidate wins, ties go to the older one). After a match, every
     buffered message not newer than the matched ones is dropped (it can no longer be part of a
-    newer set) and counted in ``dropped[stream]``. Messages with a stamp older than the last match
-    are dropped on arrival.
+    newer set) and counted in ``dropped[stream]``. Messages with a stamp not newer than the last
+    match of their stream are dropped on arrival, unless the stamp is older than the newest match
+    by more than ``jump_back_tolerance_ns`` (default 1 s): then time jumped back (a looped bag, a
+    restarted driver), and the matcher starts over (buffers dropped and counted, ``time_jumps`` + 1,
+    ``on_time_jump(text)`` called once) with this message as the first of the new timeline.
     """
 
-    def __init__(self, streams: Iterable[str], tolerance_ns: int = 20_000_000, queue_size: int = 10):
+    def __init__(self, streams: Iterable[str], tolerance_ns: int = 20_000_000, queue_size: int = 10,
+                 jump_back_tolerance_ns: int = JUMP_BACK_TOLERANCE_NS, on_time_jump: Callable[[str], None] | None = None):
         self.streams = tuple(streams)
         require(len(self.streams) >= 1 and len(set(self.streams)) == len(self.streams), f"streams must be distinct names, got {self.streams}")
         require(int(tolerance_ns) >= 0, f"sync tolerance must be >= 0, got {tolerance_ns} ns")
         require(int(queue_size) >= 1, f"sync queue size must be >= 1, got {queue_size}")
+        require(int(jump_back_tolerance_ns) >= 0, f"jump-back tolerance must be >= 0, got {jump_back_tolerance_ns} ns")
         self.tolerance_ns = int(tolerance_ns)
+        self.jump_back_tolerance_ns = int(jump_back_tolerance_ns)
+        self.on_time_jump = on_time_jump
+        self.time_jumps = 0
         self.queue_size = int(queue_size)
         self._buffers: dict[str, deque[tuple[int, Any]]] = {s: deque() for s in self.streams}
         self._lock = threading.Lock()
@@ -77,6 +102,10 @@ class StampMatcher:
         require(stream in self._buffers, f"unknown stream {stream!r}: expected one of {', '.join(self.streams)}")
         stamp_ns = int(stamp_ns)
         with self._lock:
+            if self._last_match:
+                newest = max(self._last_match.values())
+                if stamp_ns < newest - self.jump_back_tolerance_ns:
+                    self._restart(newest - stamp_ns, stamp_ns)
             last = self._last_match.get(stream)
             if last is not None and stamp_ns <= last:
                 self.dropped[stream] += 1
@@ -122,6 +151,15 @@ class StampMatcher:
                 self.matched += 1
                 return MatchedSet(ref_stamp, {s: m for s, (_, m) in chosen.items()}, {s: st for s, (st, _) in chosen.items()})
         return None
+
+    def _restart(self, back_ns: int, stamp_ns: int) -> None:
+        for s, b in self._buffers.items():
+            self.dropped[s] += len(b)
+            b.clear()
+        self._last_match.clear()
+        self.time_jumps += 1
+        if self.on_time_jump is not None:
+            self.on_time_jump(_jump_text(f"input sync ({', '.join(self.streams)})", back_ns, stamp_ns))
 
     def clear(self) -> None:
         with self._lock:
@@ -272,16 +310,26 @@ class PartitionAssembler:
     whose axes are all resolved: complete, or failed (lost frame = gap in the index sequence,
     duplicate or out-of-range index, count disagreeing with the plan, or no completion within
     ``timeout_s``). At most ``max_pending`` input frames are held; a newer one evicts the oldest
-    (which is released as failed). Data for a stamp already released is ignored and counted.
+    (which is released as failed). Data for a stamp already released is ignored and counted in
+    ``late``, unless the stamp is older than the newest one seen by more than
+    ``jump_back_tolerance_ns`` (default 1 s): then time jumped back (a looped bag, a restarted
+    driver), the pending sets are released as failed, the released stamps are forgotten,
+    ``time_jumps`` + 1 and ``on_time_jump(text)`` is called once, so the new pass is assembled again.
     """
 
     def __init__(self, timeout_s: float = 10.0, max_pending: int = 4, clock: Callable[[], float] = time.monotonic,
-                 expect_bounds: bool = True):
+                 expect_bounds: bool = True, jump_back_tolerance_ns: int = JUMP_BACK_TOLERANCE_NS,
+                 on_time_jump: Callable[[str], None] | None = None):
         require(timeout_s > 0, f"assembly timeout must be positive, got {timeout_s}")
         require(int(max_pending) >= 1, f"max_pending must be >= 1, got {max_pending}")
         self.timeout_s = float(timeout_s)
         self.max_pending = int(max_pending)
         self.expect_bounds = bool(expect_bounds)
+        require(int(jump_back_tolerance_ns) >= 0, f"jump-back tolerance must be >= 0, got {jump_back_tolerance_ns} ns")
+        self.jump_back_tolerance_ns = int(jump_back_tolerance_ns)
+        self.on_time_jump = on_time_jump
+        self.time_jumps = 0
+        self._newest: int | None = None
         self._clock = clock
         self._frames: "OrderedDict[int, _Frame]" = OrderedDict()
         self._released: deque[int] = deque(maxlen=256)
@@ -293,6 +341,16 @@ class PartitionAssembler:
 
     # -- input --
     def _frame(self, stamp_ns: int) -> _Frame | None:
+        if self._newest is not None and stamp_ns < self._newest - self.jump_back_tolerance_ns:
+            back = self._newest - stamp_ns
+            for old in list(self._frames):
+                self._release(old, f"time jumped back by {back / 1e9:.3f} s before it was complete")
+            self._released.clear()
+            self._newest = None
+            self.time_jumps += 1
+            if self.on_time_jump is not None:
+                self.on_time_jump(_jump_text("partition assembly", back, stamp_ns))
+        self._newest = stamp_ns if self._newest is None else max(self._newest, stamp_ns)
         if stamp_ns in self._released:
             self.late += 1
             return None

@@ -6,6 +6,7 @@ import sys
 from ..core.certify import METHODS, certify
 from ..core.model import load_denoiser, load_model
 from ..core.render import resolve_device
+from ..progress_log import Progress
 from .common import add_plan_args, add_scene_args, add_smoothing_args, config_from_args, emit, load_scene
 
 
@@ -22,7 +23,7 @@ def register(sub) -> None:
     add_plan_args(p, methods=METHODS)
     add_smoothing_args(p)
     p.add_argument("--json", action="store_true", help="print the certificate as JSON")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress (a bar on a terminal, else a line every 30 s)")
     p.set_defaults(func=run)
 
 
@@ -36,16 +37,11 @@ def run(args) -> int:
         print(f"pws certify: rendering at the model's input size {w}x{h} (camera is {intr.width}x{intr.height})", file=sys.stderr)
         intr = intr.scaled(w, h)
     denoiser = load_denoiser(args.denoiser, device=device) if args.denoiser else None
-    progress = None
-    if not args.quiet and sys.stderr.isatty():
-        try:
-            from ..progress import ProgressBar
-
-            bar = ProgressBar(desc=f"certify {args.method} {args.axis}")
-            progress = bar.update
-        except ImportError:
-            progress = None
-    cert = certify(cloud, intr, model, args.axis, args.radius, args.method, config, denoiser=denoiser, progress=progress)
+    bar = Progress(label=f"pws certify {args.method} {args.axis}", unit="images", mode="off" if args.quiet else None)
+    try:
+        cert = certify(cloud, intr, model, args.axis, args.radius, args.method, config, denoiser=denoiser, progress=bar.update_to)
+    finally:
+        bar.close()
     d = cert.to_dict(full=args.json)
     lines = [cert.summary(), ""]
     for key in ("status", "label", "class_name", "certified", "radius", "unit", "min_p_a_lower", "num_partitions",

@@ -39,7 +39,8 @@ PlotJuggler, rosbags, the mcap tools):
   rendered/preview       every --preview-every-th rendered frame, rgb8 (--preview)
   the input topics       copied unchanged, at their recorded log time (--copy-inputs)
 
-It prints a progress bar with ETA (on a terminal; --quiet hides it) and a summary: frames seen,
+It shows progress on stderr (a bar with ETA on a terminal; else a plain line every --progress-interval
+seconds with frames done, rate, ETA and the last results; --quiet hides it) and prints a summary: frames seen,
 certified, abstained, errors, certified radius per axis (mean / median), time per certificate,
 and, when the bag holds ground truth (/pws/ground_truth, written by `pws sim record`), clean
 accuracy, certified accuracy and certified accuracy vs radius.
@@ -55,7 +56,12 @@ nodes) and the options below override them. Same bag + same seed = identical cer
 
 Exit status: 0 when at least one certificate could be computed (frames that failed are written as
 ERROR statuses and counted); 2 when nothing could be done (bad arguments, unreadable or empty bag,
-no camera input, a model that does not load, or every frame failed), with one line naming why."""
+no camera input, a model that does not load, or every frame failed), with one line naming why;
+130 (SIGINT, Ctrl-C) or 143 (SIGTERM) when stopped: the frame in flight is dropped, OUT is closed
+and complete up to the last finished frame, and the summary/report (marked "interrupted") cover
+the frames done. The bag is flushed after every frame, so even after SIGKILL or an out-of-memory
+kill the .mcap holds every finished frame (no footer nor metadata.yaml then: `pws replay` and the
+mcap stream reader read it; rosbags and `ros2 bag` need a copy repaired with `mcap recover`)."""
 
 EPILOG = """\
 examples:
@@ -121,7 +127,10 @@ def register(subparsers) -> None:
     o.add_argument("--report", default=None, metavar="DIR", help="write DIR/frames.csv (per frame and axis), DIR/summary.json, "
                    "DIR/certified_accuracy_vs_radius.png and DIR/frames.png (radius and latency over time)")
     o.add_argument("--json", action="store_true", help="print the summary as JSON on stdout instead of the table")
-    o.add_argument("--quiet", action="store_true", help="no progress bar and no info lines (warnings and the summary still print)")
+    o.add_argument("--quiet", action="store_true", help="no progress (bar or lines) and no info lines (warnings and the summary still print)")
+    o.add_argument("--progress-interval", type=float, default=None, metavar="S",
+                   help="when stderr is not a terminal: one progress line (frames done, rate, ETA, last results) every S seconds "
+                        "(default 30; 0 = after every frame)")
 
     c = p.add_argument_group("certification (override the config)")
     c.add_argument("--config", default=None, help="ROS 2 parameter file (default: config/pws.yaml if found, else built-in defaults)")
@@ -140,8 +149,8 @@ def register(subparsers) -> None:
     c.add_argument("--device", default=None, help="cpu or cuda:N (falls back to cpu with a warning)")
     c.add_argument("--batch-size", type=int, default=None, help="images per classifier call")
     c.add_argument("--max-partitions", type=int, default=None,
-                   help="refuse plans needing more partitions than this (an ERROR status for that axis, at once); a quick cap "
-                        "on the cost per frame (default: config max_partitions, 20000)")
+                   help="the cap on the cost per frame: plans needing more partitions are made coarser (fewer frames, a "
+                        "smaller certified radius) (default: config max_partitions, 20000)")
     c.add_argument("--min-partitions", type=int, default=None,
                    help="refine each plan to at least this many partitions (still sound; tightens the bounds where the method "
                         "plans only a few frames; default: config min_partitions)")
@@ -155,7 +164,8 @@ def register(subparsers) -> None:
     i.add_argument("--depth-topic", default=None, help="depth Image topic registered to the colour camera (implies RGB-D input)")
     i.add_argument("--color-topic", default=None, help="colour Image topic")
     i.add_argument("--info-topic", default=None, help="CameraInfo of the colour camera")
-    i.add_argument("--depth-info-topic", default=None, help="CameraInfo of the depth stream (depth whose intrinsics differ is refused)")
+    i.add_argument("--depth-info-topic", default=None, help="CameraInfo of the depth stream (depth whose intrinsics differ is refused); "
+                   "default: the config's depth_camera_info_topic, else found beside the depth topic; \"\" = no such check")
     i.add_argument("--truth-topic", default=None, help="ground-truth DiagnosticArray topic (default: /pws/ground_truth when present)")
     i.add_argument("--sync-tolerance", type=float, default=None, help="largest depth/colour stamp difference of one frame, s (default: config, 0.02)")
     i.add_argument("--max-frames", type=int, default=None, metavar="K", help="stop after K input frames")
@@ -206,12 +216,18 @@ def options_from_args(args: argparse.Namespace):
     topics = {"cloud": args.cloud_topic, "depth": args.depth_topic, "color": args.color_topic, "info": args.info_topic,
               "depth_info": args.depth_info_topic, "truth": args.truth_topic}
     require(args.max_frames is None or args.max_frames >= 1, f"--max-frames must be >= 1, got {args.max_frames}")
+    interval = {}
+    if args.progress_interval is not None:
+        require(math.isfinite(args.progress_interval) and args.progress_interval >= 0,
+                f"--progress-interval must be >= 0 seconds, got {args.progress_interval}")
+        interval["progress_interval_s"] = args.progress_interval
     return ReplayOptions(
         bag=Path(args.bag), config=cfg, out=Path(args.out) if args.out else None, overwrite=args.overwrite,
-        write_output=not args.no_output, topics={k: v for k, v in topics.items() if v}, max_frames=args.max_frames,
+        write_output=not args.no_output, topics={k: v for k, v in topics.items() if v or (k == "depth_info" and v == "")},
+        max_frames=args.max_frames,
         realtime=args.realtime, copy_inputs=args.copy_inputs, write_cloud=args.write_cloud, preview=args.preview,
         markers=not args.no_markers, poses=not args.no_poses, namespace=args.namespace, compress=not args.no_compression,
-        report_dir=Path(args.report) if args.report else None, quiet=args.quiet)
+        report_dir=Path(args.report) if args.report else None, quiet=args.quiet, **interval)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -230,7 +246,8 @@ def run(args: argparse.Namespace) -> int:
         if result.report_files:
             print(f"report: {', '.join(str(p) for p in result.report_files)}")
     if result.exit_code != 0 and result.message:
-        print(f"pws replay: error: {result.message}", file=sys.stderr)
+        kind = "interrupted" if result.summary.get("interrupted") else "error"
+        print(f"pws replay: {kind}: {result.message}", file=sys.stderr)
     return result.exit_code
 
 

@@ -77,7 +77,10 @@ class Worker:
                 self.log("warn", str(exc))
             except Exception as exc:  # keep the node alive
                 self.last_error = f"{type(exc).__name__}: {exc}"
-                self.log("error", f"worker failed: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+                if self.stopping:  # the node is being torn down under this frame: not an error of the frame
+                    self.log("info", f"frame abandoned at shutdown ({type(exc).__name__}: {exc})")
+                else:
+                    self.log("error", f"worker failed: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
             finally:
                 self.busy = False
 
@@ -88,6 +91,61 @@ class Worker:
         self._stop.set()
         self.slot.close()
         self.thread.join(timeout)
+
+
+class ShutdownSafePublisher:
+    """A publisher that does nothing once the ROS context is shut down.
+
+    SIGINT shuts the context down while a worker may still be certifying a frame; publishing its
+    results then raised ``RCLError: Failed to publish: publisher's context is invalid``. Publishing
+    is skipped (counted in ``skipped``) when ``ok()`` is False, and a publish that fails because the
+    shutdown happened meanwhile is skipped too; any other failure is raised as before.
+    """
+
+    def __init__(self, publisher: Any, ok: Callable[[], bool]):
+        self.publisher = publisher
+        self.ok = ok
+        self.skipped = 0
+
+    def publish(self, msg: Any) -> None:
+        if not self.ok():
+            self.skipped += 1
+            return
+        try:
+            self.publisher.publish(msg)
+        except Exception:
+            if self.ok():
+                raise
+            self.skipped += 1
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.publisher, name)
+
+
+class PosePublishers:
+    """The ``plan/poses/<axis>`` publishers, created for the configured axes up front and on a
+    parameter change (in executor callbacks), never from a worker thread, which may still run
+    after shutdown began (creating a publisher then fails)."""
+
+    def __init__(self, ctx: Any):
+        self.ctx = ctx
+        self.pubs: dict[str, Any] = {}
+        self.update(ctx.config)
+
+    def update(self, cfg: Any) -> None:
+        for axis in cfg.axes:
+            if axis not in self.pubs:
+                self.pubs[axis] = self.ctx.publisher(self.ctx.types.PoseArray, f"plan/poses/{axis}")
+
+    def publish(self, axis: str, msg: Any) -> None:
+        pub = self.pubs.get(axis)
+        if pub is not None:
+            pub.publish(msg)
+
+
+def jump_logger(ctx: Any) -> Callable[[str], None]:
+    """The ``on_time_jump`` callback of the bridge's matchers: one WARN per jump back in time."""
+    return lambda text: ctx.log("warn", text)
 
 
 class Throttle:
@@ -136,6 +194,7 @@ class InputFrontend:
         self.on_frame = on_frame
         cfg = ctx.config
         self.assembler = InputAssembler(cfg)
+        self.assembler.matcher.on_time_jump = jump_logger(ctx)
         self.throttle = Throttle()
         self.received = 0
         T = ctx.types
@@ -172,3 +231,7 @@ class InputFrontend:
     @property
     def dropped(self) -> int:
         return self.assembler.dropped
+
+    @property
+    def time_jumps(self) -> int:
+        return self.assembler.matcher.time_jumps

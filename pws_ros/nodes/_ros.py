@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import array
 import threading
+import time
 from types import SimpleNamespace
 from typing import Any, Callable
 
@@ -19,6 +20,7 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
 from ..bridge.config import SPECS, ParamSpec, PwsConfig, check_consistency, config_from_params, spec_table, validate_param
 from ..bridge.msgbuild import MESSAGE_TYPES
 from ..core.errors import PwsError
+from ._common import ShutdownSafePublisher
 
 try:  # Iron and later
     from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
@@ -164,8 +166,13 @@ class NodeContext:
         self.types = rclpy_types()
         self.config = declare_from_table(node, node_kind)
         self.qos_events = 0
+        self.closing = False  # set by run() before the node is torn down
         self.on_change: Callable[[PwsConfig], None] | None = None
         self.watcher = ParamWatcher(node, node_kind, self.config, self._changed)
+
+    def ok(self) -> bool:
+        """False once shutdown began (SIGINT shut the context down, or run() is tearing the node down)."""
+        return not self.closing and self.node.context.ok()
 
     def _changed(self, cfg: PwsConfig) -> None:
         self.config = cfg
@@ -195,7 +202,12 @@ class NodeContext:
 
     def now_ns(self) -> int:
         """Node clock now (sim time when use_sim_time is set)."""
-        return int(self.node.get_clock().now().nanoseconds)
+        try:
+            return int(self.node.get_clock().now().nanoseconds)
+        except Exception:  # the node is being torn down under a busy worker
+            if self.ok():
+                raise
+            return time.time_ns()  # nothing is published any more: any clock will do
 
     def _incompatible(self, what: str, topic: str) -> Callable[[Any], None]:
         def cb(event: Any) -> None:
@@ -221,10 +233,12 @@ class NodeContext:
     def publisher(self, msg_type: Any, topic: str, *, kind: str | None = None, depth: int | None = None) -> Any:
         cfg = self.config
         profile = qos(kind or cfg.output_qos, depth or cfg.output_qos_depth)
-        return self.node.create_publisher(
+        pub = self.node.create_publisher(
             msg_type, topic, profile,
             event_callbacks=PublisherEventCallbacks(incompatible_qos=self._incompatible("publisher", topic)),
             **_overrides())
+        # a worker still busy with a frame when SIGINT shuts the context down publishes nothing
+        return ShutdownSafePublisher(pub, self.ok)
 
 
 # ---- running ------------------------------------------------------------------------------
@@ -251,6 +265,9 @@ def run(node_name: str, factory: Callable[[Node], Any], args: list[str] | None =
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        ctx = getattr(logic, "ctx", None)
+        if ctx is not None:
+            ctx.closing = True  # a worker still busy publishes nothing from now on
         if logic is not None and hasattr(logic, "close"):
             logic.close()
         node.destroy_node()

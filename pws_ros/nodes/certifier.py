@@ -21,7 +21,7 @@ from typing import Any
 from ..bridge import msgbuild, outputs, scheme
 from ..bridge.sync import AssembledFrame, AxisSet, PartitionAssembler
 from ..core.errors import PwsError
-from ._common import HealthPublisher, Throttle, Worker, start
+from ._common import HealthPublisher, Throttle, Worker, jump_logger, start
 
 NODE_NAME = "certifier"
 POLL_S = 0.05
@@ -37,7 +37,8 @@ class CertifierNode:
         T = ctx.types
         cfg = ctx.config
         self.engine = FrameCertifier(cfg, log=ctx.log)  # loads the model now (PwsError -> exit 2)
-        self.assembler = PartitionAssembler(timeout_s=cfg.assembly_timeout_s, max_pending=cfg.max_pending_frames)
+        self.assembler = PartitionAssembler(timeout_s=cfg.assembly_timeout_s, max_pending=cfg.max_pending_frames,
+                                            on_time_jump=jump_logger(ctx))
         self.bundles: OrderedDict[int, scheme.PlanBundle] = OrderedDict()
         self.throttle = Throttle()
         self.certified = 0
@@ -142,7 +143,8 @@ class CertifierNode:
                 "frames_dropped": w.slot.dropped, "device": self.engine.device, "last_error": self.last_frame_error,
                 "warning": self.engine.device_warning,
                 "extra": {"pending_frames": len(self.assembler.pending()), "incomplete_axis_sets": self.assembler.failed,
-                          "late_messages": self.assembler.late, "bad_messages": self.bad_messages}}
+                          "late_messages": self.assembler.late, "bad_messages": self.bad_messages,
+                          "time_jumps_back": self.assembler.time_jumps}}
 
     def close(self) -> None:
         self.worker.close()

@@ -49,7 +49,7 @@ class CloudListenerNode:
         w = self.worker
         return {"activity": "converted", "rate_hz": w.rate.rate(), "frames_in": self.frontend.assembler.frames, "frames_processed": self.published,
                 "frames_dropped": w.slot.dropped + self.frontend.dropped, "device": "cpu", "last_error": "",
-                "warning": w.last_error, "extra": {"input_messages": self.frontend.received}}
+                "warning": w.last_error, "extra": {"input_messages": self.frontend.received, "time_jumps_back": self.frontend.time_jumps}}
 
     def close(self) -> None:
         self.worker.close()

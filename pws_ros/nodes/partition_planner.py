@@ -16,7 +16,7 @@ from typing import Any
 
 from ..bridge import msgbuild, msgconv, scheme
 from ..bridge.sync import StampMatcher
-from ._common import HealthPublisher, Worker, start
+from ._common import HealthPublisher, PosePublishers, Worker, jump_logger, start
 
 NODE_NAME = "partition_planner"
 
@@ -32,10 +32,11 @@ class PartitionPlannerNode:
         self.engine.render_size  # noqa: B018 - reads the model's input size now (PwsError -> exit 2)
         if cfg.method == "pws":
             self.engine.dense_cloud  # noqa: B018
-        self.matcher = StampMatcher(("cloud", "info"), tolerance_ns=0, queue_size=cfg.sync_queue_size)
+        self.matcher = StampMatcher(("cloud", "info"), tolerance_ns=0, queue_size=cfg.sync_queue_size, on_time_jump=jump_logger(ctx))
         self.pub_plan = ctx.publisher(T.String, "plan")
         self.pub_cloud = ctx.publisher(T.PointCloud2, "plan/cloud")
-        self.pub_poses: dict[str, Any] = {}
+        self.poses = PosePublishers(ctx)
+        ctx.on_change = self.poses.update
         self.planned = 0
         self.worker = Worker("pws-planner", self._process, ctx.log)
         self.subs = [
@@ -49,11 +50,6 @@ class PartitionPlannerNode:
         if got is not None:
             self.worker.submit(got)
 
-    def _poses_pub(self, axis: str) -> Any:
-        if axis not in self.pub_poses:
-            self.pub_poses[axis] = self.ctx.publisher(self.ctx.types.PoseArray, f"plan/poses/{axis}")
-        return self.pub_poses[axis]
-
     def _process(self, matched: Any) -> None:
         T = self.ctx.types
         self.engine.config = cfg = self.ctx.config
@@ -63,7 +59,7 @@ class PartitionPlannerNode:
         bundle = self.engine.plan_bundle(cloud, intr, matched.stamp_ns, cloud_msg.header.frame_id)
         if cfg.publish_poses:
             for axis, plan in bundle.plans.items():
-                self._poses_pub(axis).publish(msgbuild.plan_to_pose_array(cloud_msg.header, plan, T))
+                self.poses.publish(axis, msgbuild.plan_to_pose_array(cloud_msg.header, plan, T))
         if bundle.plans:  # the projector renders from this very cloud
             self.pub_cloud.publish(cloud_msg)
         self.pub_plan.publish(scheme.plan_bundle_message(bundle, T))
@@ -75,7 +71,7 @@ class PartitionPlannerNode:
         w = self.worker
         return {"activity": "planned", "rate_hz": w.rate.rate(), "frames_in": self.matcher.matched, "frames_processed": self.planned,
                 "frames_dropped": w.slot.dropped + self.matcher.total_dropped(), "device": self.engine.device,
-                "last_error": "", "warning": w.last_error}
+                "last_error": "", "warning": w.last_error, "extra": {"time_jumps_back": self.matcher.time_jumps}}
 
     def close(self) -> None:
         self.worker.close()

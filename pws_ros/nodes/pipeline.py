@@ -35,18 +35,20 @@ class PipelineNode:
         ctx.on_change = self._on_change
         self.engine = FrameCertifier(ctx.config, log=ctx.log)  # loads the model now (PwsError -> exit 2)
         self.pubs = outputs.OutputPublishers(ctx, (outputs.CERTIFICATION, outputs.MARKERS, outputs.CLOUD,
-                                                   outputs.CLOUD_INFO, outputs.PREVIEW))
+                                                   outputs.CLOUD_INFO, outputs.PREVIEW), axes=ctx.config.axes)
         self.frame_errors = 0
         self.last_frame_error = ""
         self.worker = Worker("pws-pipeline", self._process, ctx.log)
         self.frontend = InputFrontend(ctx, self._on_frame)
         self.health = HealthPublisher(ctx, self._counters)
+        coverage = f"coverage {ctx.config.coverage}, " if ctx.config.method != "cms" else ""  # cms has no coverage rule
         ctx.log("info", f"pipeline ready: axes {', '.join(ctx.config.axes)}, method {ctx.config.method}, "
-                        f"coverage {ctx.config.coverage}, device {self.engine.device}")
+                        f"{coverage}device {self.engine.device}")
 
     def _on_change(self, cfg: Any) -> None:
         self.frontend.assembler.config = cfg
         self.frontend.assembler.matcher.tolerance_ns = int(round(cfg.sync_tolerance_s * 1e9))
+        self.pubs.update_axes(cfg.axes)
 
     def _on_frame(self, raw: RawFrame) -> None:
         self.worker.submit(raw)
@@ -90,7 +92,8 @@ class PipelineNode:
             "last_error": self.last_frame_error,
             "warning": self.engine.device_warning,
             "extra": {"busy": w.busy, "input_messages": self.frontend.received, "unmatched_inputs": self.frontend.dropped,
-                      "ignored_inputs": self.frontend.assembler.ignored, "skipped_by_min_period": self.frontend.assembler.skipped},
+                      "ignored_inputs": self.frontend.assembler.ignored, "skipped_by_min_period": self.frontend.assembler.skipped,
+                      "time_jumps_back": self.frontend.time_jumps},
         }
 
     def close(self) -> None:

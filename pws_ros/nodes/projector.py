@@ -52,7 +52,9 @@ class ProjectorNode:
 
     def _on_cloud(self, msg: Any) -> None:
         with self._cloud_cond:
-            self.clouds[msgconv.header_stamp_ns(msg)] = msg
+            stamp = msgconv.header_stamp_ns(msg)
+            self.clouds.pop(stamp, None)  # a looped bag repeats stamps: the newest arrival is the newest entry
+            self.clouds[stamp] = msg
             while len(self.clouds) > self.max_clouds:
                 self.clouds.popitem(last=False)
             self._cloud_cond.notify_all()
