@@ -944,7 +944,8 @@ class Replay:
         s["frames"].update(extra_frames)
         s["title"] = f"pws replay {bag_info['path']}" + (f" -> {out}" if out else " (no output bag)")
         coverage = f"coverage {cfg.coverage}, " if cfg.method != "cms" else ""  # cms has no coverage rule
-        s["setup"] = (f"method {cfg.method}, {coverage}sigma {cfg.sigma:g}, n0 {cfg.n0}, n {cfg.n}, alpha {cfg.alpha:g}, "
+        s["setup"] = (f"method {cfg.method}, {coverage}imaging {cfg.imaging}, sigma {cfg.sigma:g}, n0 {cfg.n0}, n {cfg.n}, "
+                      f"risk alpha {cfg.alpha:g} per frame ({cfg.alpha / max(1, len(axes)):g} per axis), "
                       f"seed {cfg.seed}, device {self.engine.device}, {'realtime policy' if self.opts.realtime else 'every frame'}; "
                       + inputs.describe())
         s["bag"] = bag_info
@@ -952,7 +953,10 @@ class Replay:
         s["output_topics"] = counts
         s["inputs"] = {"mode": inputs.mode, **inputs.roles()}
         s["config"] = {"method": cfg.method, "coverage": cfg.coverage if cfg.method != "cms" else None, "axes": axes, "radius": {a: cfg.radius_for(a) for a in axes},
-                       "sigma": cfg.sigma, "n0": cfg.n0, "n": cfg.n, "alpha": cfg.alpha, "seed": cfg.seed, "device": self.engine.device,
+                       "imaging": cfg.imaging, "sigma": cfg.sigma, "n0": cfg.n0, "n": cfg.n, "alpha": cfg.alpha,
+                       # the risk of each frame's whole statement (all axes), and what each axis spends of it
+                       "frame_alpha": cfg.alpha, "alpha_per_axis": cfg.alpha / max(1, len(axes)),
+                       "num_anchors": cfg.num_anchors, "seed": cfg.seed, "device": self.engine.device,
                        "batch_size": cfg.batch_size, "model_path": cfg.model_path, "realtime": self.opts.realtime,
                        "dense_cloud": cfg.dense_cloud_path if cfg.method == "pws" else None}
         s["warnings"] = list(self.warnings)

@@ -114,10 +114,14 @@ def _replay_sent(certs, compute_ms, frame, result, **opts):
             assert stamp_ns == STAMP
             written.append((topic, msg))
 
+        def flush(self):
+            pass
+
     rep = Replay(ReplayOptions(bag="unused", **opts))
     rep.config, rep.types, rep.writer = rep.opts.config, T, Writer()
     header = msgbuild.make_header(T, STAMP, "cam")
     rep._emit(header, certs, STAMP, latency_ms=12.0, compute_ms=compute_ms, frame=frame, result=result)
+    rep._commit()  # a frame's messages are written together once it is done
     return written
 
 

@@ -647,7 +647,6 @@ def test_config_file_and_the_pws_entry_point(sim_bag, models, tmp_path, capsys):
 def test_max_partitions_caps_the_cost_per_frame(sim_bag, models, capsys):
     rc, stdout, err = run_cli([sim_bag, "--no-output", "--model", models["linear"], "--axes", "tz,ry", "--radius", "tz=5cm,ry=0.05deg",
                                "--n0", "16", "--n", "32", "--max-partitions", "3", "--quiet", "--json"], capsys)
-    assert rc == 0, err  # ry was certified, tz refused on every frame
+    assert rc == 0, err  # plans needing more frames are made coarser, never refused
     s = json.loads(stdout)
-    assert s["axes"]["tz"]["errors"] == 3 and s["axes"]["ry"]["errors"] == 0
-    assert all("max_partitions=3" in reason for reason in s["error_reasons"])
+    assert s["axes"]["tz"]["errors"] == 0 and s["axes"]["ry"]["errors"] == 0

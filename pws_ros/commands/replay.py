@@ -144,13 +144,25 @@ def register(subparsers) -> None:
     c.add_argument("--n0", type=int, default=None, help="noise samples selecting the top class")
     c.add_argument("--n", type=int, default=None, help="noise samples per bound estimating p_A")
     c.add_argument("--sigma", type=float, default=None, help="pixel noise sigma of the smoothed classifier (images in [0, 1])")
-    c.add_argument("--alpha", type=float, default=None, help="failure probability of each certificate (Bonferroni over its bounds)")
+    c.add_argument("--alpha", type=float, default=None,
+                   help="risk of each frame's certificate, all its axes together (split over the axes, then by Bonferroni "
+                        "over every bound; default: config alpha, 0.01)")
     c.add_argument("--seed", type=int, default=None, help="random seed (same bag + seed = same certificates)")
     c.add_argument("--device", default=None, help="cpu or cuda:N (falls back to cpu with a warning)")
     c.add_argument("--batch-size", type=int, default=None, help="images per classifier call")
     c.add_argument("--max-partitions", type=int, default=None,
-                   help="the cap on the cost per frame: plans needing more partitions are made coarser (fewer frames, a "
-                        "smaller certified radius) (default: config max_partitions, 20000)")
+                   help="the cap on the cost per frame: plans needing more partitions are made coarser (fewer frames, "
+                        "looser bounds, maybe a smaller certified radius), never refused (default: config max_partitions, 257)")
+    c.add_argument("--imaging", default=None, choices=("surfel", "paper"),
+                   help="imaging model (default: config imaging, surfel; --method pws implies paper): surfel renders each "
+                        "point as the patch its depth pixel saw at the camera's resolution and block-averages a centred "
+                        "crop to the model's input; paper paints one pixel per point at the model's size")
+    c.add_argument("--border", type=int, default=None, help="surfel imaging: masked border in output pixels (-1 = from the radii)")
+    c.add_argument("--anchors", type=int, default=None,
+                   help="most anchors per axis (budget n0 + anchors * n classifier calls; default: config num_anchors, 9)")
+    c.add_argument("--audit-every", type=int, default=None,
+                   help="self-audit every k-th frame: re-render poses in every segment and check every bound; a "
+                        "violation turns the axis to ERROR (default: config audit_every, 0 = off)")
     c.add_argument("--min-partitions", type=int, default=None,
                    help="refine each plan to at least this many partitions (still sound; tightens the bounds where the method "
                         "plans only a few frames; default: config min_partitions)")
@@ -198,11 +210,14 @@ def build_config(args: argparse.Namespace):
               "device": "device", "batch_size": "batch_size", "model": "model_path", "classes": "classes_path",
               "denoiser": "denoiser_path", "dense_cloud": "dense_cloud_path", "sync_tolerance": "sync_tolerance_s",
               "preview_every": "preview_every", "max_partitions": "max_partitions",
-              "min_partitions": "min_partitions"}
+              "min_partitions": "min_partitions", "imaging": "imaging", "border": "border", "anchors": "num_anchors",
+              "audit_every": "audit_every"}
     for attr, name in simple.items():
         v = getattr(args, attr, None)
         if v is not None:
             params[name] = str(Path(v).expanduser().resolve()) if attr in ("model", "classes", "denoiser", "dense_cloud") else v
+    if params.get("method") == "pws" and getattr(args, "imaging", None) is None:
+        params["imaging"] = "paper"  # the entire scene cloud has no depth pixels to make surfels of
     try:
         return cfg.with_params(params)
     except PwsError as exc:
