@@ -178,7 +178,8 @@ def test_certified_range_stops_before_the_true_boundary(model, scenes):
 def test_planned_methods_are_never_wrong(method, model, scenes):
     cloud = scenes["one_frame"]
     radius = 0.08
-    config = CertifyConfig(imaging="paper", sigma=SIGMA, n0=32, n=150, alpha=0.001, seed=11, batch_size=1000, max_partitions=400)
+    config = CertifyConfig(imaging="paper", sigma=SIGMA, n0=32, n=150, alpha=0.001, seed=11, batch_size=1000, max_partitions=400,
+                           coverage="pairwise")
     plan = plan_partitions(cloud, CAM, "tx", radius, method, max_partitions=400)
     cert = certify(cloud, CAM, model, "tx", radius, method, config)
     assert cert.method == method and cert.num_partitions == plan.num_partitions
@@ -308,7 +309,8 @@ def test_certify_bad_input(model, scenes, tmp_path):
 def test_coverage_at_an_exact_crossing_instant(model, scenes):
     cloud = scenes["one_frame"]
     radius = 0.08
-    config = CertifyConfig(imaging="paper", sigma=SIGMA, n0=32, n=150, alpha=0.001, seed=11, batch_size=1000, max_partitions=400)
+    config = CertifyConfig(imaging="paper", sigma=SIGMA, n0=32, n=150, alpha=0.001, seed=11, batch_size=1000, max_partitions=400,
+                           coverage="pairwise")
     plan = plan_partitions(cloud, CAM, "tx", radius, "pws", max_partitions=400)
     cert = certify(cloud, CAM, model, "tx", radius, "pws", config, plan=plan)
     assert cert.status == STATUS_CERTIFIED

@@ -43,7 +43,7 @@ def test_cms_setup_line_names_no_coverage(sim_bag, models, capsys):  # noqa: F81
                             *TINY], capsys)
     assert rc == 0, err
     summary = json.loads(out)
-    assert summary["setup"].startswith("method cms, sigma") and "coverage" not in summary["setup"]
+    assert summary["setup"].startswith("method cms, imaging surfel, sigma") and "coverage" not in summary["setup"]
     assert summary["config"]["coverage"] is None
     rc, out, err = run_cli([sim_bag, "--no-output", "--model", models["linear"], "--max-frames", "1", "--json", *TINY], capsys)
     assert rc == 0 and "coverage anchors" in json.loads(out)["setup"]
