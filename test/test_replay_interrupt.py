@@ -53,17 +53,22 @@ def test_sigterm_closes_a_readable_bag_and_a_summary_marked_interrupted(make_mod
             if "pws replay: 1/36 frames" in line:
                 first_frame.set()
 
+    out_chunks: list[str] = []
     reader = threading.Thread(target=read_stderr, daemon=True)
     reader.start()
+    out_reader = threading.Thread(target=lambda: out_chunks.append(proc.stdout.read()), daemon=True)
+    out_reader.start()  # each pipe has one reader only (communicate() would race the stderr thread)
     try:
         assert first_frame.wait(60), "no frame finished within 60 s:\n" + "".join(err_lines)
         assert proc.poll() is None, "the replay ended before it could be interrupted"
         proc.send_signal(signal.SIGTERM)
-        stdout, _ = proc.communicate(timeout=60)
+        proc.wait(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
-    reader.join(5)
+    reader.join(10)
+    out_reader.join(10)
+    stdout = "".join(out_chunks)
     stderr = "".join(err_lines)
     assert proc.returncode == 143, stderr
     assert "pws replay: interrupted: stopped by SIGTERM after" in stderr
