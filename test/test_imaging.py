@@ -250,3 +250,13 @@ def test_refine_plan_splits_only_where_frames_differ():
     out = refine_plan(plan, frames, 0.3, 100)
     assert list(out.alphas[:4]) == [-1.0, -0.5, 0.0, 0.5] and len(out.alphas) == 4 + 4 and out.alphas[-1] == 1.0
     assert refine_plan(plan, frames, 0.3, 6).num_partitions <= 6
+
+
+def test_refine_plan_stops_where_the_anchor_budget_cannot_reach():
+    alphas = make_grid(1.0, 0.25)  # 9 frames, centre index 4
+    plan = Plan("pws_of", "tx", 1.0, 0.25, 9, alphas)
+    frames = np.arange(9, dtype=np.float64).reshape(9, 1, 1, 1)  # every segment differs by 1.0
+    out = refine_plan(plan, frames, 0.5, 1000, reach=1.0)  # segments starting within path 1.0 of alpha = 0
+    assert len(out.alphas) == 9 + 4
+    got = set(np.round(out.alphas, 9))
+    assert got >= {-0.375, -0.125, 0.125, 0.375} and -0.625 not in got and 0.625 not in got

@@ -380,9 +380,17 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, model: LoadedModel, 
     t0 = time.perf_counter()
     frames = renderer.render_batch(plan.alphas).cpu().numpy()
     if target > 0:
-        plan = refine_plan(plan, frames, target / REFINE_FRACTION, int(config.max_partitions))
-        if len(plan.alphas) != len(frames):
-            frames = renderer.render_batch(plan.alphas).cpu().numpy()
+        # anchors cover about 2 target radii of rendered path each: refine no farther than the budget reaches
+        coarse = plan
+        plan = refine_plan(plan, frames, target / REFINE_FRACTION, int(config.max_partitions),
+                           reach=(max_anchors + 1) * target)
+        if len(plan.alphas) != len(frames):  # render only the new poses
+            old = np.searchsorted(plan.alphas, coarse.alphas)
+            new = np.setdiff1d(np.arange(len(plan.alphas)), old)
+            full = np.empty((len(plan.alphas),) + frames.shape[1:], dtype=frames.dtype)
+            full[old] = frames
+            full[new] = renderer.render_batch(plan.alphas[new]).cpu().numpy()
+            frames = full
     t_render += time.perf_counter() - t0
     N = plan.num_partitions
     centre = int(np.searchsorted(plan.alphas, 0.0))
