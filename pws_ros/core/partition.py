@@ -232,6 +232,21 @@ def planning_window(points: np.ndarray, intr: CameraIntrinsics, axis: str, radiu
     return max(1.0 + 1e-9, min(4.0, (radius + 0.5 * (limit - radius)) / radius))
 
 
+def _grid_within(radius: float, delta_alpha: float, min_partitions: int, max_partitions: int,
+                 details: dict[str, Any]) -> np.ndarray:
+    """The grid of step ``delta_alpha``, refined to at least ``min_partitions`` and made coarser to at most
+    ``max_partitions`` frames (recorded in ``details``)."""
+    step = delta_alpha
+    if min_partitions > 3:
+        m_min = min(min_partitions // 2, (max_partitions - 1) // 2)  # 2 m + 1 >= min_partitions, <= max_partitions
+        if radius / m_min < step:
+            step = radius / m_min
+            details["refined_for_min_partitions"] = int(min_partitions)
+    if grid_size(radius, step) > max_partitions:
+        details["coarsened_from"] = grid_size(radius, step)
+    return make_grid(radius, step, max_partitions)
+
+
 def plan_partitions(cloud: Cloud, intr: CameraIntrinsics, axis: str, radius: float, method: str = "pws_of",
                     delta: float | None = None, max_partitions: int = DEFAULT_MAX_PARTITIONS,
                     min_partitions: int = 0) -> Plan:
@@ -298,15 +313,7 @@ def plan_partitions(cloud: Cloud, intr: CameraIntrinsics, axis: str, radius: flo
     if not math.isfinite(delta_alpha) or delta_alpha > radius:
         delta_alpha = radius
     require(delta_alpha > 0, "a consistent interval of zero length was found (degenerate cloud: duplicate points?)")
-    step = delta_alpha
-    if min_partitions > 3:
-        m_min = min(min_partitions // 2, (max_partitions - 1) // 2)  # 2 m + 1 >= min_partitions, <= max_partitions
-        if radius / m_min < step:
-            step = radius / m_min
-            details["refined_for_min_partitions"] = int(min_partitions)
-    if grid_size(radius, step) > max_partitions:
-        details["coarsened_from"] = grid_size(radius, step)
-    alphas = make_grid(radius, step, max_partitions)
+    alphas = _grid_within(radius, delta_alpha, min_partitions, max_partitions, details)
     shortest = min(float(lengths.min()) if len(lengths) else math.inf, runs.hole_min_length)
     details["lemma1_holds"] = bool(shortest >= (alphas[1] - alphas[0]))  # every run (holes too) >= step
     details["min_run"] = shortest
@@ -347,14 +354,6 @@ def plan_step(cloud: Cloud, intr: CameraIntrinsics, axis: str, radius: float, me
     L = float(lipschitz_constant(pts, intr, axis, -radius, radius).max()) if len(pts) else 0.0
     details["max_speed_px"] = L
     delta_alpha = radius if L <= 0 or not math.isfinite(L) else min(radius, step_px / L)
-    step = delta_alpha
-    if min_partitions > 3:
-        m_min = min(min_partitions // 2, (max_partitions - 1) // 2)
-        if radius / m_min < step:
-            step = radius / m_min
-            details["refined_for_min_partitions"] = int(min_partitions)
-    if grid_size(radius, step) > max_partitions:
-        details["coarsened_from"] = grid_size(radius, step)
-    alphas = make_grid(radius, step, max_partitions)
+    alphas = _grid_within(radius, delta_alpha, min_partitions, max_partitions, details)
     details["plan_seconds"] = time.perf_counter() - t0
     return Plan(method, axis, radius, delta_alpha, len(alphas), alphas, UNITS[axis], details)
