@@ -581,6 +581,8 @@ def test_shipped_demo_bag(models, tmp_path, capsys):
     assert rc == 0, err
     s = json.loads(stdout)
     assert s["frames"]["processed"] == 2 and s["frames"]["with_truth"] == 2
+    # 640x480 RGB-D without a PointCloud2: the one-frame cloud comes from the aligned depth + CameraInfo
+    assert s["inputs"]["mode"] == "rgbd" and s["inputs"]["depth"] == "/camera/aligned_depth_to_color/image_raw"
 
 
 # ---- storage formats, split bags, config files, the pws entry point ------------------------------

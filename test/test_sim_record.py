@@ -127,6 +127,54 @@ def test_sqlite3_round_trip(tmp_path):
         _check_frame(f, s, v)
 
 
+def test_record_without_points(tmp_path):
+    """points=False: the same frames, byte for byte, minus the PointCloud2 topic."""
+    from mcap.reader import make_reader
+
+    bag = record(tmp_path / "np", 3, seed=4, width=W, height=H, views_per_scene=2, points=False)
+    with_points = record(tmp_path / "wp", 3, seed=4, width=W, height=H, views_per_scene=2)
+    frames = list(read_recording(bag))
+    assert len(frames) == 3
+    for f, g, (s, v) in zip(frames, read_recording(with_points), frame_schedule(3, seed=4, views_per_scene=2)):
+        assert f.points is None and f.point_rgb is None
+        assert f.stamp_ns == g.stamp_ns and f.truth == g.truth and f.intrinsics == g.intrinsics
+        assert np.array_equal(f.rgb, g.rgb) and np.array_equal(f.depth_m, g.depth_m)
+        v_ = render_view(s, v, W, H, dense=False)
+        assert np.array_equal(f.rgb, v_.rgb) and np.abs(f.depth_m - v_.depth).max() <= 0.0005 + 1e-9
+
+    def raw_by_topic(path):
+        out = defaultdict(list)
+        with open(next(Path(path).glob("*.mcap")), "rb") as fh:
+            for _s, channel, message in make_reader(fh).iter_messages():
+                out[channel.topic].append((message.log_time, bytes(message.data)))
+        return dict(out)
+
+    a, b = raw_by_topic(bag), raw_by_topic(with_points)
+    assert set(a) == set(TOPICS) - {TOPIC_POINTS} and set(b) == set(TOPICS)
+    assert all(a[t] == b[t] for t in a)  # the other messages are unchanged
+    assert sum(f.stat().st_size for f in bag.iterdir()) < sum(f.stat().st_size for f in with_points.iterdir())
+
+
+def test_recording_is_deterministic(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    x = record(tmp_path / "a" / "bag", 2, seed=5, width=W, height=H, points=False)
+    y = record(tmp_path / "b" / "bag", 2, seed=5, width=W, height=H, points=False)
+    for name in ("bag.mcap", "metadata.yaml"):
+        assert (x / name).read_bytes() == (y / name).read_bytes()
+
+
+def test_reading_a_bag_without_camera_topics_names_them(tmp_path):
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    with Writer(tmp_path / "other", version=9) as w:
+        w.add_connection(TOPIC_TRUTH, TOPICS[TOPIC_TRUTH], typestore=ts)
+    with pytest.raises(PwsError, match=f"lacks {TOPIC_DEPTH}.*{TOPIC_INFO}"):
+        list(read_recording(tmp_path / "other"))
+
+
 def test_invalid_depth_is_zero_and_nan(tmp_path):
     bag = record(tmp_path / "far", 1, seed=1, width=W, height=H, max_depth=2.5)
     (f,) = list(read_recording(bag))
@@ -158,6 +206,10 @@ def _cli(argv):
 def test_cli_record_and_view(tmp_path, capsys):
     assert _cli(["sim", "record", "--out", str(tmp_path / "b"), "--frames", "2", "--width", str(W), "--height", str(H)]) == 0
     assert len(list(read_recording(tmp_path / "b"))) == 2
+    assert _cli(["sim", "record", "--out", str(tmp_path / "c"), "--frames", "2", "--width", str(W), "--height", str(H), "--no-points"]) == 0
+    assert "RGB-D, CameraInfo, ground truth;" in capsys.readouterr().out
+    c = list(read_recording(tmp_path / "c"))
+    assert len(c) == 2 and all(f.points is None for f in c)
     assert _cli(["sim", "view", "--seed", "2", "--view", "4", "--out-dir", str(tmp_path / "v"), "--width", str(W), "--height", str(H)]) == 0
     for name in ("rgb.png", "depth.png", "camera.yaml", "cloud.npz", "dense_cloud.npz", "view.json"):
         assert (tmp_path / "v" / name).is_file()

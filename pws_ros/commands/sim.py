@@ -14,7 +14,7 @@ def register(subparsers) -> None:
     sub = p.add_subparsers(dest="sim_command", metavar="{record,view,classes}")
     sub.required = True
 
-    r = sub.add_parser("record", help="write views as a rosbag2 bag (RGB, CameraInfo, aligned depth, organized cloud, ground truth)")
+    r = sub.add_parser("record", help="write views as a rosbag2 bag (RGB, CameraInfo, aligned depth, organized cloud unless --no-points, ground truth)")
     r.add_argument("--out", required=True, help="bag directory to create (must not exist)")
     r.add_argument("--frames", type=int, default=36, help="number of frames (default 36)")
     r.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="rosbag2 storage (default mcap, zstd chunks)")
@@ -25,6 +25,8 @@ def register(subparsers) -> None:
     r.add_argument("--rate", type=float, default=10.0, help="frame rate of the stamps in Hz (default 10)")
     r.add_argument("--max-depth", type=float, default=None, help="depth beyond this (m) is invalid (0 / NaN), like a sensor's range")
     r.add_argument("--no-compression", action="store_true", help="MCAP without zstd chunk compression")
+    r.add_argument("--no-points", action="store_true",
+                   help="leave out the organized PointCloud2 (RGB-D + CameraInfo + ground truth only; 16 B a pixel less)")
     r.set_defaults(func=run)
 
     v = sub.add_parser("view", help="export one view: rgb.png, depth.png (16-bit mm), camera.yaml, cloud.npz, dense_cloud.npz, view.json")
@@ -67,9 +69,10 @@ def _record(args) -> int:
 
     out = record(args.out, args.frames, storage=args.storage, seed=args.seed, width=args.width, height=args.height,
                  views_per_scene=args.views_per_scene, period_s=1.0 / args.rate, max_depth=args.max_depth,
-                 compress=not args.no_compression, progress=progress)
+                 compress=not args.no_compression, points=not args.no_points, progress=progress)
     size = sum(f.stat().st_size for f in Path(out).iterdir() if f.is_file())
-    print(f"wrote {out} ({args.frames} frames, {args.storage}, {size / 1e6:.2f} MB)")
+    what = "RGB-D, CameraInfo, ground truth" if args.no_points else "RGB-D, CameraInfo, PointCloud2, ground truth"
+    print(f"wrote {out} ({args.frames} frames {args.width}x{args.height}, {what}; {args.storage}, {size / 1e6:.2f} MB)")
     return 0
 
 
