@@ -53,7 +53,7 @@ class CertifyConfig:
     device: str = "cpu"
     batch_size: int = 500
     coverage: str = "anchors"
-    num_anchors: int = 9
+    num_anchors: int = 16
     background: float = 0.0
     max_partitions: int = DEFAULT_FRAME_BUDGET
     min_partitions: int = 0
