@@ -289,12 +289,16 @@ def test_accuracy_helpers():
 
 
 def test_peak_memory_sees_an_allocation():
-    with PeakMemory(torch.device("cpu"), interval=0.001) as mem:
-        a = np.ones(40 * 2**20 // 8)
-        a += 1
-        import time
+    import mmap
+    import time
 
+    with PeakMemory(torch.device("cpu"), interval=0.001) as mem:
+        # fresh anonymous pages (an ndarray could reuse memory the allocator kept from earlier tests)
+        buf = mmap.mmap(-1, 40 * 2**20)
+        a = np.frombuffer(buf, dtype=np.uint8)
+        a[::4096] = 1  # touch every page
         time.sleep(0.05)
         del a
+        buf.close()
     assert mem.peak_bytes is not None, "no resident-set size (/proc/self/statm) on this Linux machine"
     assert mem.peak_bytes >= 30 * 2**20
