@@ -387,6 +387,9 @@ class FrameCertifier:
             return
         cert.bounds["audit"] = {"poses": report.poses_checked, "violations": len(report.violations),
                                 "worst_ratio": report.worst_ratio, "seconds": report.seconds}
+        self.log("info", f"self-audit {plan.axis}: {report.poses_checked} poses re-rendered in {plan.num_partitions - 1} "
+                         f"segments, {len(report.violations)} bound violation(s), worst measured/bound "
+                         f"{report.worst_ratio:.6g}, {report.seconds:.1f} s")
         if report.violations:
             v = report.violations[0]
             self.log("error", f"self-audit of {plan.axis}: {len(report.violations)} bound violation(s), e.g. segment "
