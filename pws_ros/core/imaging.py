@@ -39,6 +39,9 @@ at every pose, so the renderer's lower-index rule decides them there too.
 The block mean is linear with positive weights, so the output pixel of every frame of the segment lies
 in the block means of ``lo`` and ``hi`` (widened by ``VALUE_EPS`` for float32 rounding). Distances to
 any frame ``y`` are then bounded by ``sum max((lo - y)^2, (hi - y)^2)`` (:class:`HullValues`).
+
+(One module on purpose, over the usual ~400 lines: the renderer and the bounds implement one model
+with one set of constants and helpers, and must not drift apart.)
 """
 from __future__ import annotations
 
