@@ -260,3 +260,24 @@ def test_refine_plan_stops_where_the_anchor_budget_cannot_reach():
     assert len(out.alphas) == 9 + 4
     got = set(np.round(out.alphas, 9))
     assert got >= {-0.375, -0.125, 0.125, 0.375} and -0.625 not in got and 0.625 not in got
+
+
+def test_memory_ceiling_keeps_the_refined_grid_small_instead_of_failing(monkeypatch):
+    import pws_ros.core.certify as certify_mod
+    from conftest import MeanThresholdNet
+    from pws_ros.core.model import load_model, save_model
+
+    rng = np.random.default_rng(7)
+    cloud = random_cloud(rng, False)
+    cfg = certify_mod.CertifyConfig(n0=16, n=32, max_memory_mb=64)
+    im = make_imaging("surfel", CAM, (3, 4), background=0.5, border=0)
+    # pretend a segment takes a tenth of the bounds' share: at most 10 segments fit
+    monkeypatch.setattr(certify_mod, "segment_bytes", lambda imaging: certify_mod.bounds_bytes(cfg) // 10)
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as d:
+        model = load_model(save_model(MeanThresholdNet(0.3), Path(d) / "m.pt", ["a", "b"], input_size=(3, 4)))
+        plans: list = []
+        cert = certify_mod.certify(cloud, CAM, model, "tx", 0.05, "pws_of", cfg, imaging=im, plan_out=plans)
+    assert cert.status != "error" and cert.num_partitions <= 11 and plans[-1].num_partitions == cert.num_partitions

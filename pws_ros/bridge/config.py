@@ -112,6 +112,9 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("delta", 0.0, "PwS-OF delta-convexity constant in pixels; 0 = the core's default", range=(0.0, 100.0), nodes=_PLAN, unit="px"),
     ParamSpec("max_partitions", DEFAULT_FRAME_BUDGET, "most partitions (frames) per axis: a plan needing more is made coarser (fewer frames, "
               "looser bounds, maybe a smaller certified radius), never refused", range=(3, 1_000_000), nodes=_PLAN),
+    ParamSpec("max_memory_mb", 2048.0, "memory ceiling of one axis' certificate: the per-segment bounds and frames "
+              "take at most half of it (the adaptive grid stays coarser to fit; a larger plan is an ERROR), the "
+              "renderer streams within the rest", range=(64.0, 1e7), nodes=_PLAN, unit="MiB"),
     ParamSpec("min_partitions", 0, "refine each plan to at least this many partitions (still sound; tightens the bounds where the method "
               "plans only a few frames, e.g. sub-pixel motions); 0 = as planned", range=(0, 1_000_000), nodes=_PLAN),
     ParamSpec("dense_cloud_path", "", "prior dense cloud (.npz with points, colors in the camera optical frame) for method pws; empty otherwise",
@@ -203,6 +206,7 @@ class PwsConfig:
     coverage: str = "anchors"
     delta: float = 0.0
     max_partitions: int = DEFAULT_FRAME_BUDGET
+    max_memory_mb: float = 2048.0
     min_partitions: int = 0
     dense_cloud_path: str = ""
     background: float = 0.0
@@ -275,7 +279,7 @@ class PwsConfig:
                              batch_size=self.batch_size, coverage=self.coverage, num_anchors=self.num_anchors,
                              background=self.background, max_partitions=self.max_partitions,
                              min_partitions=self.min_partitions, imaging=self.imaging, border=self.border,
-                             step_px=self.step_px,
+                             step_px=self.step_px, max_memory_mb=self.max_memory_mb,
                              delta=self.delta if self.delta > 0 else None,
                              cms_sigma=self.cms_sigma if self.cms_sigma > 0 else None)
 

@@ -177,7 +177,12 @@ class FrameCertifier:
         im = make_imaging(c.imaging, intr, size, background=c.background, border=c.border, cloud=cloud, radii=c.radii)
         if im.kind == "surfel" and not self._aspect_warned:
             self._aspect_warned = True
-            self.log("info", im.describe())
+            from ..core.certify import bounds_bytes, segment_bytes
+
+            fit = min(int(c.max_partitions), int(bounds_bytes(self.certify_config()) // segment_bytes(im)))
+            self.log("info", f"{im.describe()}; memory per axis: frames and bounds of at most {fit} segments x "
+                             f"{segment_bytes(im) / 2**20:.2f} MiB = {fit * segment_bytes(im) / 2**20:.0f} MiB "
+                             f"(max_memory_mb {c.max_memory_mb:g}), the renderer streams in chunks")
         return im
 
     def render_camera(self, intr: CameraIntrinsics) -> CameraIntrinsics:

@@ -56,6 +56,7 @@ class CertifyConfig:
     num_anchors: int = 16
     background: float = 0.0
     max_partitions: int = DEFAULT_FRAME_BUDGET
+    max_memory_mb: float = 2048.0
     min_partitions: int = 0
     delta: float | None = None
     cms_sigma: float | None = None
@@ -75,6 +76,8 @@ class CertifyConfig:
         require(math.isfinite(self.background), f"background must be finite, got {self.background}")
         require(self.imaging in IMAGING_KINDS, f"unknown imaging model {self.imaging!r}: expected one of {', '.join(IMAGING_KINDS)}")
         require(math.isfinite(self.step_px) and self.step_px > 0, f"step_px must be positive, got {self.step_px}")
+        require(math.isfinite(self.max_memory_mb) and self.max_memory_mb >= 64,
+                f"max_memory_mb must be at least 64, got {self.max_memory_mb}")
         return self
 
     def to_dict(self) -> dict[str, Any]:
@@ -126,6 +129,19 @@ def paper_reach(pair_bound_sq: np.ndarray, R: np.ndarray, centre: int) -> int:
     while j < centre and Mseg[centre - j - 1 : centre + j + 1].max() < R[centre - j - 1 : centre + j + 2].min():
         j += 1
     return j
+
+
+def segment_bytes(imaging: Imaging) -> int:
+    """Memory one segment of the surfel bounds and one frame take at the classifier's input size."""
+    h, w = imaging.out_shape
+    return h * w * (3 * 4 * 2 + 1) + h * w * 3 * 4
+
+
+def bounds_bytes(config: CertifyConfig) -> int:
+    """The share of ``max_memory_mb`` the per-segment bounds and frames of one axis may take (half; the
+    renderer streams its chunks within the rest): a refined grid stays within it, a larger plan is an
+    ERROR naming the ceiling, never an out-of-memory kill."""
+    return int(config.max_memory_mb * 2**20 / 2)
 
 
 def _label_name(model: LoadedModel, label: int) -> str:
@@ -197,7 +213,7 @@ def certify(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, axis: str,
             cert.bounds["imaging"] = imaging.to_dict()
             cert.imaging = imaging.kind
             return cert
-        values = segment_hulls(renderer, plan.alphas)
+        values = segment_hulls(renderer, plan.alphas, max_bytes=bounds_bytes(config))
     else:
         values = segment_values(cloud, cam, axis, plan.alphas, config.background)
         renderer = Renderer(cloud, cam, axis, background=config.background, device=config.device)
@@ -382,7 +398,9 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, model: LoadedModel, 
     if target > 0:
         # anchors cover about 2 target radii of rendered path each: refine no farther than the budget reaches
         coarse = plan
-        plan = refine_plan(plan, frames, target / REFINE_FRACTION, int(config.max_partitions),
+        # ... and keep the frames and bounds of the refined grid within the memory ceiling
+        fit = int(bounds_bytes(config) // max(1, segment_bytes(renderer.imaging)))
+        plan = refine_plan(plan, frames, target / REFINE_FRACTION, max(len(frames), min(int(config.max_partitions), fit)),
                            reach=(max_anchors + 1) * target)
         if len(plan.alphas) != len(frames):  # render only the new poses
             old = np.searchsorted(plan.alphas, coarse.alphas)
@@ -398,7 +416,7 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, model: LoadedModel, 
     if plan_out is not None:
         plan_out.append(plan)
     t0 = time.perf_counter()
-    hulls = segment_hulls(renderer, plan.alphas)
+    hulls = segment_hulls(renderer, plan.alphas, max_bytes=bounds_bytes(config))
     timings = dict(timings, bounds=timings.get("bounds", 0.0) + time.perf_counter() - t0)
     t1 = time.perf_counter()
     rows: dict[int, np.ndarray] = {}
