@@ -154,16 +154,20 @@ def test_cli_audit_on_the_sample_view():
 
 
 def test_cli_audit_exit_1_on_a_wrong_bound(capsys, monkeypatch):
-    real = audit_cmd.segment_values
-    monkeypatch.setattr(audit_cmd, "segment_values", lambda *a, **k: Scaled(real(*a, **k), 0.5))
+    import pws_ros.core.bounds as bounds_mod
+
+    real = bounds_mod.segment_values
+    monkeypatch.setattr(bounds_mod, "segment_values", lambda *a, **k: Scaled(real(*a, **k), 0.5))
     assert main(scene_args() + ["--min-poses", "50", "--poses-per-segment", "4", "--imaging", "paper"]) == 1
     out = capsys.readouterr().out
     assert "VIOLATIONS" in out and "VIOLATION segment" in out
 
 
 def test_cli_audit_surfel_imaging_exit_1_on_a_wrong_bound(capsys, monkeypatch):
-    real = audit_cmd.segment_hulls
-    monkeypatch.setattr(audit_cmd, "segment_hulls", lambda *a, **k: Scaled(real(*a, **k), 0.5))
+    import pws_ros.core.imaging as imaging_mod
+
+    real = imaging_mod.segment_hulls
+    monkeypatch.setattr(imaging_mod, "segment_hulls", lambda *a, **k: Scaled(real(*a, **k), 0.5))
     assert main(scene_args() + ["--min-poses", "50", "--poses-per-segment", "4"]) == 1
     assert "VIOLATIONS" in capsys.readouterr().out
 

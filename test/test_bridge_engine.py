@@ -9,7 +9,7 @@ import torch
 
 from pws_ros.bridge import msgbuild, scheme
 from pws_ros.bridge.config import config_from_params
-from pws_ros.bridge.engine import FrameCertifier, preview_indices, render_camera, resolve_device_with_fallback
+from pws_ros.bridge.engine import FrameCertifier, preview_indices, resolve_device_with_fallback
 from pws_ros.bridge.sync import PartitionAssembler
 from pws_ros.core.camera import CameraIntrinsics
 from pws_ros.core.certify import certify
@@ -234,12 +234,6 @@ def test_device_fallback_and_bad_device(model_path, monkeypatch):
 def test_missing_model_fails_at_start(tmp_path):
     with pytest.raises(PwsError, match="model file not found: .*nope.pt"):
         FrameCertifier(config_from_params({"model_path": str(tmp_path / "nope.pt")}))
-
-
-def test_render_camera_helper(small_camera):
-    assert render_camera(small_camera, None) is small_camera
-    assert render_camera(small_camera, (24, 32)) is small_camera
-    assert render_camera(small_camera, (12, 16)) == small_camera.scaled(16, 12)
 
 
 def test_sigma_unlike_the_training_sigma_is_warned_once_per_value(make_model_file, small_camera):

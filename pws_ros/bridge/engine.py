@@ -71,13 +71,6 @@ def resolve_device_with_fallback(device: str, log: LogFn | None = None) -> str:
     return dev
 
 
-def render_camera(intr: CameraIntrinsics, size: tuple[int, int] | None) -> CameraIntrinsics:
-    """The camera frames are rendered with: ``intr`` rescaled to ``size`` = (H, W) (None: unchanged)."""
-    if size is None or (int(size[0]), int(size[1])) == (intr.height, intr.width):
-        return intr
-    return intr.scaled(int(size[1]), int(size[0]))
-
-
 @dataclass
 class FrameResult:
     """The outcome of one input frame: one certificate per configured axis (in config order)."""
@@ -185,10 +178,6 @@ class FrameCertifier:
                              f"(max_memory_mb {c.max_memory_mb:g}), the renderer streams in chunks")
         return im
 
-    def render_camera(self, intr: CameraIntrinsics) -> CameraIntrinsics:
-        """The camera frames are rendered with (the native crop for surfel imaging)."""
-        return self.imaging_for(intr).camera
-
     def certify_config(self, axis: str | None = None, stamp_ns: int = 0):
         """The core's CertifyConfig; for an axis of a frame: ``alpha / len(axes)`` and the derived seed."""
         from dataclasses import replace
@@ -246,16 +235,13 @@ class FrameCertifier:
 
     # ---- stage 1: plan ----
     def plan_axis(self, cloud: Cloud, imaging: Any, axis: str) -> Any:
-        from ..core.partition import plan_partitions, plan_step
+        from ..core.imaging import plan_for
 
         c = self.config
         require(c.method != "cms", "method cms has no partition plan")
-        if imaging.kind == "surfel":
-            return plan_step(cloud, imaging.camera, axis, c.radius_for(axis), c.method, step_px=c.step_px,
-                             max_partitions=c.max_partitions, min_partitions=c.min_partitions)
-        return plan_partitions(cloud, imaging.camera, axis, c.radius_for(axis), c.method,
-                               delta=c.delta if c.delta > 0 else None, max_partitions=c.max_partitions,
-                               min_partitions=c.min_partitions)
+        return plan_for(cloud, imaging, axis, c.radius_for(axis), c.method, step_px=c.step_px,
+                        delta=c.delta if c.delta > 0 else None, max_partitions=c.max_partitions,
+                        min_partitions=c.min_partitions)
 
     def plan_bundle(self, cloud: Cloud, intr: CameraIntrinsics, stamp_ns: int, frame_id: str = "",
                     dense_cloud: Cloud | None = None) -> PlanBundle:
@@ -371,16 +357,12 @@ class FrameCertifier:
         through the same imaging model and check every bound the certificate used (:mod:`pws_ros.core.audit`,
         its own distance code). Recorded in ``cert.bounds['audit']``; a violation makes the axis ERROR."""
         from ..core.audit import audit_bounds
-        from ..core.bounds import segment_values
         from ..core.certify import anchor_indices
-        from ..core.imaging import make_renderer, segment_hulls
+        from ..core.imaging import make_renderer, segment_bounds
 
         try:
             renderer = make_renderer(cloud, imaging, plan.axis, device=self.device)
-            if imaging.kind == "surfel":
-                values = segment_hulls(renderer, plan.alphas)
-            else:
-                values = segment_values(cloud, imaging.camera, plan.axis, plan.alphas, imaging.background)
+            values = segment_bounds(renderer, cloud, imaging, plan.alphas)
             anchors = cert.bounds.get("anchors")
             if anchors is None and cert.coverage == "anchors":
                 anchors = plan.alphas[anchor_indices(plan.num_partitions, self.config.num_anchors)]
@@ -465,4 +447,4 @@ def preview_frames(axis: str, rendered: Any, every: int) -> list[tuple[str, int,
     return [(axis, i, preview_image(rendered.frames[i])) for i in preview_indices(rendered.alphas, every)]
 
 
-__all__ = ["FrameCertifier", "FrameResult", "preview_frames", "preview_indices", "render_camera", "resolve_device_with_fallback"]
+__all__ = ["FrameCertifier", "FrameResult", "preview_frames", "preview_indices", "resolve_device_with_fallback"]

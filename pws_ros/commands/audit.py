@@ -4,12 +4,9 @@ from __future__ import annotations
 import math
 
 from ..core.audit import DEFAULT_POSES_PER_SEGMENT, audit_bounds
-from ..core.bounds import segment_values
 from ..core.certify import CertifyConfig, anchor_indices
-from ..core.imaging import SurfelRenderer, make_imaging, segment_hulls
+from ..core.imaging import make_imaging, make_renderer, plan_for, segment_bounds
 from ..core.motion import UNITS
-from ..core.partition import plan_partitions, plan_step
-from ..core.render import Renderer
 from .common import add_imaging_size_arg, add_plan_args, add_scene_args, emit, load_scene, positive_int
 
 MAX_LISTED = 20
@@ -47,16 +44,10 @@ def run(args) -> int:
     CertifyConfig(background=args.background).validate()
     im = make_imaging(args.imaging, intr, args.size, background=args.background, border=args.border, cloud=cloud,
                       radii={args.axis: args.radius})
-    if im.kind == "surfel":
-        plan = plan_step(cloud, im.camera, args.axis, args.radius, args.method, step_px=args.step_px,
-                         max_partitions=args.max_partitions, min_partitions=args.min_partitions)
-        renderer = SurfelRenderer(cloud, im, plan.axis, device=args.device)
-        values = segment_hulls(renderer, plan.alphas)
-    else:
-        plan = plan_partitions(cloud, im.camera, args.axis, args.radius, args.method, delta=args.delta,
-                               max_partitions=args.max_partitions, min_partitions=args.min_partitions)
-        values = segment_values(cloud, im.camera, plan.axis, plan.alphas, args.background)
-        renderer = Renderer(cloud, im.camera, plan.axis, background=args.background, device=args.device)
+    plan = plan_for(cloud, im, args.axis, args.radius, args.method, step_px=args.step_px, delta=args.delta,
+                    max_partitions=args.max_partitions, min_partitions=args.min_partitions)
+    renderer = make_renderer(cloud, im, plan.axis, device=args.device)
+    values = segment_bounds(renderer, cloud, im, plan.alphas)
     nseg = plan.num_partitions - 1
     per_segment = max(int(args.poses_per_segment), math.ceil(args.min_poses / nseg))
     anchors = plan.alphas[anchor_indices(plan.num_partitions, args.num_anchors)]

@@ -7,8 +7,7 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics
 from ..core.cloud import Cloud
-from ..core.imaging import make_imaging
-from ..core.partition import plan_partitions, plan_step
+from ..core.imaging import make_imaging, plan_for
 from .common import add_imaging_size_arg, add_plan_args, add_scene_args, emit, load_scene
 
 ONE_FRAME_WARNING = ("pws plan: warning: method pws needs the entire scene cloud (every surface that can come into view or be "
@@ -51,12 +50,8 @@ def run(args) -> int:
     if args.method == "pws" and looks_like_one_frame(cloud, intr):
         print(ONE_FRAME_WARNING, file=sys.stderr)
     im = make_imaging(args.imaging, intr, args.size, border=args.border, cloud=cloud, radii={args.axis: args.radius})
-    if im.kind == "surfel":
-        plan = plan_step(cloud, im.camera, args.axis, args.radius, args.method, step_px=args.step_px,
-                         max_partitions=args.max_partitions, min_partitions=args.min_partitions)
-    else:
-        plan = plan_partitions(cloud, im.camera, args.axis, args.radius, args.method, delta=args.delta,
-                               max_partitions=args.max_partitions, min_partitions=args.min_partitions)
+    plan = plan_for(cloud, im, args.axis, args.radius, args.method, step_px=args.step_px, delta=args.delta,
+                    max_partitions=args.max_partitions, min_partitions=args.min_partitions)
     if args.out:
         plan.to_json(args.out, indent=1)
     d = plan.to_dict()

@@ -27,15 +27,14 @@ import numpy as np
 import torch
 
 from .anchors import REFINE_FRACTION, place_anchors, refine_plan, target_radius
-from .bounds import SegmentValues, segment_values
+from .bounds import SegmentValues
 from .camera import CameraIntrinsics
 from .cloud import Cloud
 from .errors import require
-from .imaging import IMAGING_KINDS, Imaging, SurfelRenderer, make_imaging, segment_hulls
+from .imaging import IMAGING_KINDS, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, segment_bounds, segment_hulls
 from .model import LoadedModel
 from .motion import UNITS, parse_axis
-from .partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, Plan, check_radius, plan_partitions, plan_step, validate_grid
-from .render import Renderer
+from .partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, Plan, check_radius, validate_grid
 from .result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_NOT_CERTIFIED, Certificate
 from .smoothing import SmoothedClassifier, bonferroni, clopper_pearson_lower, cohen_radius
 
@@ -192,12 +191,8 @@ def certify(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, axis: str,
         return cert
     t_start = time.perf_counter()
     if plan is None:
-        if imaging.kind == "surfel":
-            plan = plan_step(cloud, cam, axis, radius, method, step_px=config.step_px,
-                             max_partitions=config.max_partitions, min_partitions=int(config.min_partitions))
-        else:
-            plan = plan_partitions(cloud, cam, axis, radius, method, delta=config.delta,
-                                   max_partitions=config.max_partitions, min_partitions=int(config.min_partitions))
+        plan = plan_for(cloud, imaging, axis, radius, method, step_px=config.step_px, delta=config.delta,
+                        max_partitions=config.max_partitions, min_partitions=int(config.min_partitions))
     else:
         require(plan.axis == axis, f"plan is for axis {plan.axis}, not {axis}")
         require(abs(plan.radius - radius) <= 1e-12 * radius, f"plan is for radius {plan.radius:g}, not {radius:g}")
@@ -205,22 +200,16 @@ def certify(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, axis: str,
     t_plan = time.perf_counter() - t_start
     t0 = time.perf_counter()
     timings = {"plan": t_plan, "render": 0.0}
-    if imaging.kind == "surfel":
-        renderer = SurfelRenderer(cloud, imaging, axis, device=config.device,
-                                  alpha_range=(float(plan.alphas[0]), float(plan.alphas[-1])))
-        if config.coverage == "anchors":
-            cert = _certify_anchored(renderer, plan, model, config, denoiser, progress, method, timings, t_start, plan_out)
-            cert.bounds["imaging"] = imaging.to_dict()
-            cert.imaging = imaging.kind
-            return cert
-        values = segment_hulls(renderer, plan.alphas, max_bytes=bounds_bytes(config))
+    renderer = make_renderer(cloud, imaging, axis, device=config.device,
+                             alpha_range=(float(plan.alphas[0]), float(plan.alphas[-1])))
+    if imaging.kind == "surfel" and config.coverage == "anchors":
+        cert = _certify_anchored(renderer, plan, model, config, denoiser, progress, method, timings, t_start, plan_out)
     else:
-        values = segment_values(cloud, cam, axis, plan.alphas, config.background)
-        renderer = Renderer(cloud, cam, axis, background=config.background, device=config.device)
-    timings["bounds"] = time.perf_counter() - t0
-    cert = _certify_stream(renderer, plan, values, model, config, denoiser, progress, method, timings, t_start)
-    if plan_out is not None:
-        plan_out.append(plan)
+        values = segment_bounds(renderer, cloud, imaging, plan.alphas, max_bytes=bounds_bytes(config))
+        timings["bounds"] = time.perf_counter() - t0
+        cert = _certify_stream(renderer, plan, values, model, config, denoiser, progress, method, timings, t_start)
+        if plan_out is not None:
+            plan_out.append(plan)
     cert.bounds["imaging"] = imaging.to_dict()
     cert.imaging = imaging.kind
     return cert
@@ -255,7 +244,7 @@ def certify_rendered(rendered, model: LoadedModel, config: CertifyConfig | None 
 
 def _certify_stream(renderer, plan: Plan, values: SegmentValues, model: LoadedModel, config: CertifyConfig, denoiser,
                     progress, method: str, timings: dict[str, float], t_start: float) -> Certificate:
-    axis, N = plan.axis, plan.num_partitions
+    N = plan.num_partitions
     centre = int(np.searchsorted(plan.alphas, 0.0))
     require(plan.alphas[centre] == 0.0, "plan grid lacks alpha = 0")
     sc = SmoothedClassifier(model, config.sigma, batch_size=config.batch_size, seed=config.seed, denoiser=denoiser)

@@ -30,8 +30,7 @@ Bounds of the surfel model (:func:`segment_hulls`): for a segment ``[a, b]`` of 
 pixel gets the per-channel interval ``[lo, hi]`` of every value it can show for some ``alpha`` in the
 segment: the colours of every surfel whose footprint can cover its centre there and that no surely
 covering surfel always hides, plus the background unless some surfel surely covers it throughout.
-Footprint corners are monotone between the split points of :func:`.motion.split_points` (computed
-sparsely by :func:`split_events`), so their
+Footprint corners are monotone between the split points of :func:`.motion.split_events`, so their
 ranges over the segment are read at its ends and at those split points, widened by ``EDGE_EPS`` pixels
 for float rounding; depths closer than :func:`.motion.depth_tie_margin` count as ties (both values kept),
 except bitwise-equal depths on the axes that shift every depth alike (tx, ty, tz, rz), which stay equal
@@ -55,7 +54,8 @@ import torch
 from .camera import CameraIntrinsics
 from .cloud import Cloud
 from .errors import PwsError, require
-from .motion import AXES, DEPTH_TIE_REL, depth, depth_tie_margin, parse_axis, project
+from .motion import AXES, DEPTH_TIE_REL, depth, depth_tie_margin, parse_axis, project, split_events
+from .partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, Plan, plan_partitions, plan_step, validate_grid
 from .render import DEFAULT_MAX_ELEMENTS, resolve_device
 
 IMAGING_KINDS = ("surfel", "paper")
@@ -348,13 +348,38 @@ def reduce_frames(native: torch.Tensor, imaging: Imaging) -> torch.Tensor:
     return _block_mean64(native.to(torch.float64), imaging).to(torch.float32)
 
 
-def make_renderer(cloud: Cloud, imaging: Imaging, axis: str, *, device: str | torch.device | None = "cpu"):
-    """The renderer of ``imaging``: :class:`SurfelRenderer` or the paper model's :class:`.render.Renderer`."""
+def make_renderer(cloud: Cloud, imaging: Imaging, axis: str, *, device: str | torch.device | None = "cpu",
+                  alpha_range: tuple[float, float] | None = None):
+    """The renderer of ``imaging``: :class:`SurfelRenderer` (``alpha_range``: leave out the surfels no
+    motion in it can show) or the paper model's :class:`.render.Renderer`."""
     if imaging.kind == "surfel":
-        return SurfelRenderer(cloud, imaging, axis, device=device)
+        return SurfelRenderer(cloud, imaging, axis, device=device, alpha_range=alpha_range)
     from .render import Renderer
 
     return Renderer(cloud, imaging.camera, axis, background=imaging.background, device=device)
+
+
+def plan_for(cloud: Cloud, imaging: Imaging, axis: str, radius: float, method: str = "pws_of", *,
+             step_px: float = DEFAULT_STEP_PX, delta: float | None = None, max_partitions: int = DEFAULT_FRAME_BUDGET,
+             min_partitions: int = 0) -> Plan:
+    """The plan of ``imaging``: the step rule of :func:`.partition.plan_step` for surfel imaging, the
+    paper's methods (:func:`.partition.plan_partitions`, ``delta`` for PwS-OF) for paper imaging."""
+    if imaging.kind == "surfel":
+        return plan_step(cloud, imaging.camera, axis, radius, method, step_px=step_px,
+                         max_partitions=max_partitions, min_partitions=min_partitions)
+    return plan_partitions(cloud, imaging.camera, axis, radius, method, delta=delta,
+                           max_partitions=max_partitions, min_partitions=min_partitions)
+
+
+def segment_bounds(renderer, cloud: Cloud, imaging: Imaging, alphas, *, max_bytes: int = 1 << 30):
+    """The per-segment bounds of ``imaging`` on the grid ``alphas`` (both have ``pair_bound_sq`` and
+    ``anchor_dist_sq``): :func:`segment_hulls` of the surfel ``renderer``, or the exact sweep's
+    :class:`.bounds.SegmentValues` for paper imaging."""
+    if imaging.kind == "surfel":
+        return segment_hulls(renderer, alphas, max_bytes=max_bytes)
+    from .bounds import segment_values
+
+    return segment_values(cloud, imaging.camera, renderer.axis, alphas, imaging.background)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -429,7 +454,6 @@ def render_plan_surfel(cloud: Cloud, imaging: Imaging, plan, device: str = "cpu"
     import time
 
     from .bounds import RenderedPlan
-    from .partition import validate_grid
 
     t0 = time.perf_counter()
     validate_grid(plan.alphas, plan.radius)
@@ -463,34 +487,6 @@ def segment_hulls(renderer: SurfelRenderer, alphas, *, max_bytes: int = 1 << 30)
     for i in range(S):
         lo[i], hi[i], constant[i] = sweep.segment(float(alphas[i]), float(alphas[i + 1]))
     return HullValues(alphas, lo, hi, constant, {"surfels": renderer.num_points, "segments": S})
-
-
-def split_events(points: np.ndarray, axis: str, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
-    """The split points of :func:`.motion.split_points` inside ``(lo, hi)`` as sparse (point index, alpha)
-    pairs sorted by alpha (cheap for the short motion ranges of a certificate)."""
-    X, Y, Z = points[:, 0], points[:, 1], points[:, 2]
-    if axis == "tz":
-        pairs = [(Z, None)]
-    elif axis == "rz":
-        pairs = [(np.arctan2(Y, X), 0.0), (np.arctan2(Y, X), 0.5 * math.pi), (np.arctan2(-X, Y), 0.0), (np.arctan2(-X, Y), 0.5 * math.pi)]
-    elif axis == "rx":
-        pairs = [(np.arctan2(-Y, Z), 0.0), (np.arctan2(-Y, Z), 0.5 * math.pi)]
-    elif axis == "ry":
-        pairs = [(np.arctan2(X, Z), 0.0), (np.arctan2(X, Z), 0.5 * math.pi)]
-    else:
-        pairs = []
-    idx, ts = [], []
-    for base, offset in pairs:
-        for k in ((0,) if offset is None else range(-3, 4)):
-            t = base if offset is None else base + offset + k * math.pi
-            m = np.nonzero((t > lo) & (t < hi))[0]
-            idx.append(m)
-            ts.append(t[m])
-    if not idx:
-        return np.zeros(0, np.int64), np.zeros(0)
-    i, t = np.concatenate(idx), np.concatenate(ts)
-    order = np.argsort(t, kind="stable")
-    return i[order].astype(np.int64), t[order]
 
 
 class _HullSweep:
@@ -645,5 +641,5 @@ def _block_mean64(x: torch.Tensor, im: Imaging) -> torch.Tensor:
 
 
 __all__ = ["AXES", "DEPTH_TIE_REL", "EDGE_EPS", "HullValues", "IMAGING_KINDS", "Imaging", "SURFEL_OVERLAP",
-           "SurfelRenderer", "auto_border", "make_imaging", "make_renderer", "reduce_frames", "render_plan_surfel",
-           "segment_hulls", "surfel_corners"]
+           "SurfelRenderer", "auto_border", "make_imaging", "make_renderer", "plan_for", "reduce_frames",
+           "render_plan_surfel", "segment_bounds", "segment_hulls", "surfel_corners"]

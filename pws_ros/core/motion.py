@@ -145,41 +145,45 @@ def project(points, intr: CameraIntrinsics, axis: str, alpha, xp=np):
     return u, v, Zp
 
 
-def _harmonic_extrema(A: np.ndarray, B: np.ndarray, lo: float, hi: float) -> list[np.ndarray]:
-    """Angles in (lo, hi) where ``A cos t + B sin t`` is stationary (``t = atan2(B, A) + k pi``)
-    or zero (``t = atan2(B, A) + pi/2 + k pi``); NaN where none."""
-    base = np.arctan2(B, A)
-    out = []
-    for offset in (0.0, 0.5 * math.pi):
-        for k in range(-3, 4):
-            t = base + offset + k * math.pi
-            out.append(np.where((t > lo) & (t < hi), t, np.nan))
-    return out
+def split_events(points: np.ndarray, axis: str, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
+    """Motion values in ``(lo, hi)`` splitting ``[lo, hi]`` into pieces on which ``u``, ``v`` and the depth
+    of each point are monotonic and the depth has constant sign, as sparse (point index, alpha) pairs
+    sorted by alpha: the pole of tz (``Z - alpha = 0``) and, for rotations, the angles where a harmonic
+    ``A cos t + B sin t`` of the point is stationary (``atan2(B, A) + k pi``) or zero (``+ pi/2``)."""
+    X, Y, Z = points[:, 0], points[:, 1], points[:, 2]
+    bases: list[np.ndarray] = []
+    if axis == "rz":  # u ~ X c + Y s ; v ~ Y c - X s
+        bases = [np.arctan2(Y, X), np.arctan2(-X, Y)]
+    elif axis == "rx":  # depth = Z c - Y s ; Y' = Y c + Z s
+        bases = [np.arctan2(-Y, Z)]
+    elif axis == "ry":  # depth = Z c + X s ; X' = X c - Z s
+        bases = [np.arctan2(X, Z)]
+    cands = [Z] if axis == "tz" else [b + offset + k * math.pi for b in bases for offset in (0.0, 0.5 * math.pi)
+                                       for k in range(-3, 4)]
+    idx, ts = [], []
+    for t in cands:
+        m = np.nonzero((t > lo) & (t < hi))[0]
+        idx.append(m)
+        ts.append(t[m])
+    if not idx:
+        return np.zeros(0, np.int64), np.zeros(0)
+    i, t = np.concatenate(idx), np.concatenate(ts)
+    order = np.argsort(t, kind="stable")
+    return i[order].astype(np.int64), t[order]
 
 
 def split_points(points: np.ndarray, axis: str, lo: float, hi: float) -> np.ndarray:
-    """Motion values in ``(lo, hi)`` splitting ``[lo, hi]`` into pieces on which ``u``, ``v`` and
-    the depth of each point are monotonic and the depth has constant sign.
-
-    Returns an array ``(N, M)`` with NaN for unused slots.
-    """
-    X, Y, Z = points[:, 0], points[:, 1], points[:, 2]
+    """The :func:`split_events` of every point as an array ``(N, M)``, each row sorted, NaN for unused slots."""
     n = len(points)
-    cands: list[np.ndarray] = []
-    if axis == "tz":  # pole where Z - alpha = 0
-        cands.append(np.where((Z > lo) & (Z < hi), Z, np.nan))
-    elif axis == "rz":  # u ~ X c + Y s ; v ~ Y c - X s
-        cands += _harmonic_extrema(X, Y, lo, hi) + _harmonic_extrema(Y, -X, lo, hi)
-    elif axis == "rx":  # depth = Z c - Y s ; Y' = Y c + Z s
-        cands += _harmonic_extrema(Z, -Y, lo, hi)
-    elif axis == "ry":  # depth = Z c + X s ; X' = X c - Z s
-        cands += _harmonic_extrema(Z, X, lo, hi)
-    if not cands:
+    idx, t = split_events(points, axis, lo, hi)
+    if not len(idx):
         return np.full((n, 0), np.nan)
-    arr = np.stack(cands, axis=1)
-    arr.sort(axis=1)  # NaNs last
-    keep = ~np.all(np.isnan(arr), axis=0)
-    return arr[:, keep]
+    order = np.lexsort((t, idx))
+    idx, t = idx[order], t[order]
+    counts = np.bincount(idx, minlength=n)
+    out = np.full((n, int(counts.max())), np.nan)
+    out[idx, np.arange(len(idx)) - (np.cumsum(counts) - counts)[idx]] = t
+    return out
 
 
 def lipschitz_constant(points: np.ndarray, intr: CameraIntrinsics, axis: str, lo: float, hi: float, samples: int = 33) -> np.ndarray:
