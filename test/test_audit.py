@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 
 from pws_ros.cli import main
-from pws_ros.commands import audit as audit_cmd
 from pws_ros.core.audit import audit_bounds, segment_poses
 from pws_ros.core.bounds import segment_values
 from pws_ros.core.camera import CameraIntrinsics
