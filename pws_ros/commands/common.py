@@ -70,19 +70,20 @@ def add_plan_args(p: argparse.ArgumentParser, methods=PLAN_METHODS, default="pws
 
 
 def image_size(text: str) -> tuple[int, int]:
-    """``WxH`` -> (H, W)."""
+    """``HxW`` (height first, as a model's ``input_size``) -> (H, W)."""
     try:
-        w, h = (int(v) for v in text.lower().split("x"))
+        h, w = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 160x90, got {text!r}") from None
-    if w < 1 or h < 1:
-        raise argparse.ArgumentTypeError(f"size must be positive, got {text}")
-    return (h, w)
+        raise argparse.ArgumentTypeError(f"expected HxW such as 90x160, got {text!r}") from None
+    if h < 1 or w < 1:
+        raise argparse.ArgumentTypeError(f"size must be positive, got {text!r}")
+    return h, w
 
 
 def add_imaging_size_arg(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--size", type=image_size, default=None, metavar="WxH",
-                   help="the classifier's input size the frames are made for (default: the camera's size); "
+    p.add_argument("--size", type=image_size, default=None, metavar="HxW",
+                   help="the classifier's input size, height x width like a model's input_size, e.g. 90x160 "
+                        "(default: the camera's size); "
                         "`pws certify` takes it from the model")
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from ..core.errors import PwsError, require
+from .common import image_size
 
 DESCRIPTION = """\
 Turn your own PyTorch image classifier into the file that `pws certify`, `pws replay` and the ROS 2
@@ -38,16 +39,6 @@ example:
 exit status: 0 written, 2 bad input (one line naming the problem)."""
 
 
-def _size(text: str) -> tuple[int, int]:
-    try:
-        h, w = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected HxW such as 224x224, got {text!r}") from None
-    if h < 1 or w < 1:
-        raise argparse.ArgumentTypeError(f"size must be positive, got {text!r}")
-    return h, w
-
-
 def _floats(text: str) -> list[float]:
     try:
         return [float(v) for v in text.split(",")]
@@ -60,7 +51,7 @@ def register(subparsers) -> None:
                               description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("source", metavar="SOURCE", help="file.py:NAME, package.module:NAME or a TorchScript .pt (see above)")
     p.add_argument("--out", required=True, metavar="MODEL.pt", help="model file to write (and MODEL.classes.txt beside it)")
-    p.add_argument("--input-size", required=True, type=_size, metavar="HxW", help="image size the model takes, e.g. 224x224")
+    p.add_argument("--input-size", required=True, type=image_size, metavar="HxW", help="image size the model takes, e.g. 224x224")
     p.add_argument("--classes", required=True, metavar="FILE|A,B,...",
                    help="class names: a file with one per line, or a comma-separated list (one per model output)")
     p.add_argument("--weights", metavar="STATE.pth", help="a state dict to load into the module (torch.save(model.state_dict()); "
