@@ -375,15 +375,15 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, model: LoadedModel, 
     max_anchors = int(config.num_anchors)
     total_work = config.n0 + max_anchors * config.n
     t0 = time.perf_counter()
-    x0 = renderer.render_batch(np.array([0.0]))
+    frames = renderer.render_batch(plan.alphas).cpu().numpy()
     t_render = time.perf_counter() - t0
-    counts0 = sc.sample_counts(x0, int(config.n0))
+    zero = int(np.searchsorted(plan.alphas, 0.0))  # the selection frame: alpha = 0 is on every grid
+    counts0 = sc.sample_counts(torch.as_tensor(frames[zero:zero + 1]), int(config.n0))
     label = int(torch.argmax(counts0[0]).item())
     if progress is not None:
         progress(config.n0, total_work)
     target = target_radius(int(counts0[0, label]), int(config.n0), int(config.n), config.sigma, config.alpha, max_anchors)
     t0 = time.perf_counter()
-    frames = renderer.render_batch(plan.alphas).cpu().numpy()
     if target > 0:
         # anchors cover about 2 target radii of rendered path each: refine no farther than the budget reaches
         coarse = plan
