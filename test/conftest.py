@@ -114,3 +114,22 @@ def make_model_file(tmp_path):
         return save_model(module, tmp_path / name, class_names, input_size=input_size, meta=meta)
 
     return make
+
+
+def camera_motion_rt(axis: str, a: float) -> tuple[list[list[float]], list[float]]:
+    """Reference camera motion for brute-force tests, written out from its definition (no production
+    import): ``R^T`` (nested lists) and ``t`` such that a point ``P`` is seen at ``P' = R^T (P - t)``."""
+    import math
+
+    c, s = math.cos(a), math.sin(a)
+    t = [0.0, 0.0, 0.0]
+    if axis[0] == "t":
+        t["xyz".index(axis[1])] = a
+        R = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    elif axis == "rx":
+        R = [[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]]
+    elif axis == "ry":
+        R = [[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]
+    else:
+        R = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    return [[R[j][i] for j in range(3)] for i in range(3)], t

@@ -16,11 +16,10 @@ was "strictly nearer at both ends" and (b) failed on these clouds.
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
+from conftest import camera_motion_rt
 from pws_ros.bench.fuzz_ties import CAMERA, PIXEL_MOTION, main as fuzz_main, tie_cloud
 from pws_ros.core.bounds import segment_values
 from pws_ros.core import motion
@@ -42,19 +41,9 @@ def test_footprint_overlap_is_the_documented_one():
 
 def brute_point(p, axis, a):
     """(u, v, depth) of point ``p`` for camera motion ``a``: P' = R^T (P - t), u = fx X'/Z' + cx + 1/2."""
-    t = [0.0, 0.0, 0.0]
-    R = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
-    c, s = math.cos(a), math.sin(a)
-    if axis in ("tx", "ty", "tz"):
-        t["xyz".index(axis[1])] = a
-    elif axis == "rx":
-        R = [[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]]
-    elif axis == "ry":
-        R = [[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]
-    else:
-        R = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    RT, t = camera_motion_rt(axis, a)
     d = [float(p[i]) - t[i] for i in range(3)]
-    q = [sum(R[j][i] * d[j] for j in range(3)) for i in range(3)]  # R^T d
+    q = [sum(RT[i][j] * d[j] for j in range(3)) for i in range(3)]  # R^T d
     if q[2] <= 0:
         return None
     return CAMERA.fx * q[0] / q[2] + CAMERA.cx + 0.5, CAMERA.fy * q[1] / q[2] + CAMERA.cy + 0.5, q[2]

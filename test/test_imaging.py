@@ -16,6 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from conftest import camera_motion_rt
 from pws_ros.core.anchors import place_anchors, refine_plan
 from pws_ros.core.camera import CameraIntrinsics
 from pws_ros.core.cloud import Cloud, cloud_from_rgbd
@@ -29,26 +30,10 @@ CAM = CameraIntrinsics(8, 6, 7.0, 7.5, 3.5, 2.5, "cam")   # native 8x6, model 4x
 OVERLAP, JITTER, PLASTIC = 0.15, 0.33, 1.32471795724474602596  # from the documented model
 
 
-def rot_t(axis: str, a: float):
-    """R^T and t of the moved camera (written out, not imported)."""
-    c, s = math.cos(a), math.sin(a)
-    t = [0.0, 0.0, 0.0]
-    if axis[0] == "t":
-        t["xyz".index(axis[1])] = a
-        return [[1, 0, 0], [0, 1, 0], [0, 0, 1]], t
-    if axis == "rx":
-        R = [[1, 0, 0], [0, c, -s], [0, s, c]]
-    elif axis == "ry":
-        R = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
-    else:
-        R = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
-    return [[R[j][i] for j in range(3)] for i in range(3)], t
-
-
 def reference_native(points, colors, cam, axis, a, background):
     """Native image (H, W, 3) of the surfel model, loops only."""
     H, W = cam.height, cam.width
-    RT, t = rot_t(axis, a)
+    RT, t = camera_motion_rt(axis, a)
     best = [[(math.inf, -1) for _ in range(W)] for _ in range(H)]
     for i, (X, Y, Z) in enumerate(points):
         zz = max(Z, 0.0)
