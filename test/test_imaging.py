@@ -3,7 +3,8 @@
 The reference below re-implements the model from its written definition (module doc of
 core/imaging.py) with plain Python loops in float64: surfel corners, projection P' = R^T (P - t),
 axis-aligned footprint of the four projected corners, one sample point per native pixel (centre plus
-the documented R2 offset), nearest centre depth wins, exact ties to the lower index, background where
+the documented R2 offset), the least squared distance from the recorded camera centre wins, exact ties
+to the lower index, background where
 nothing covers, k x k block mean, masked border. It imports nothing from the production renderer or
 bounds, only data classes.
 """
@@ -51,13 +52,14 @@ def reference_native(points, colors, cam, axis, a, background):
         d = sum(RT[2][k] * q[k] for k in range(3))
         if not ok or d <= 0:
             continue
+        key = X * X + Y * Y + Z * Z   # the occlusion order: recorded distance, fixed for the motion
         for r in range(H):
             for c in range(W):
                 k = r * W + c
                 su = c + 0.5 + JITTER * (2 * ((0.5 + k / PLASTIC) % 1.0) - 1)
                 sv = r + 0.5 + JITTER * (2 * ((0.5 + k / PLASTIC ** 2) % 1.0) - 1)
-                if min(us) <= su < max(us) and min(vs) <= sv < max(vs) and (d, i) < best[r][c]:
-                    best[r][c] = (d, i)
+                if min(us) <= su < max(us) and min(vs) <= sv < max(vs) and (key, i) < best[r][c]:
+                    best[r][c] = (key, i)
     img = np.full((H, W, 3), background, dtype=np.float64)
     for r in range(H):
         for c in range(W):
@@ -199,6 +201,83 @@ def test_imaging_errors_and_crop():
     cam = CameraIntrinsics(640, 480, 460.0, 460.0, 319.5, 239.5, "cam")
     im = make_imaging("surfel", cam, (90, 160))
     assert (im.factor, im.crop, im.camera.width, im.camera.height, im.camera.cy) == (4, (0, 60), 640, 360, 179.5)
+
+
+def reference_bins(points, colors, cam):
+    """The binned cloud of a rendered camera ``cam`` (documented in bin_cloud), loops only: one point per
+    rendered pixel hit at alpha = 0, on the ray through its centre at the nearest depth of the bin, with
+    the mean colour; bins row by row."""
+    bins: dict[tuple[int, int], list[int]] = {}
+    for i, (X, Y, Z) in enumerate(points):
+        if Z <= 0:
+            continue
+        u = cam.fx * X / Z + (cam.cx + 0.5)
+        v = cam.fy * Y / Z + (cam.cy + 0.5)
+        bins.setdefault((math.floor(v), math.floor(u)), []).append(i)
+    pts, cols = [], []
+    for (r, c) in sorted(bins):
+        members = bins[(r, c)]
+        z = min(points[i][2] for i in members)
+        pts.append([(c - cam.cx) * z / cam.fx, (r - cam.cy) * z / cam.fy, z])
+        cols.append([sum(float(colors[i][ch]) for i in members) / len(members) for ch in range(3)])
+    return np.array(pts), np.array(cols, dtype=np.float32)
+
+
+def test_render_factor_bins_the_camera_and_keeps_the_crop():
+    cam = CameraIntrinsics(640, 480, 460.0, 460.0, 319.5, 239.5, "cam")
+    im = make_imaging("surfel", cam, (90, 160), render_factor=2)
+    c = im.camera
+    assert (im.factor, im.decimate, im.crop, c.width, c.height) == (2, 2, (0, 60), 320, 180)
+    assert (c.fx, c.cx, c.cy) == (230.0, 159.5, 89.5)       # pixel edges halve: (cx + 1/2) / 2 - 1/2
+    assert "binned 2x2" in im.describe()
+    three = make_imaging("surfel", cam, (90, 160), render_factor=3)   # 3 does not divide 4: native 480x270
+    assert (three.factor, three.decimate, three.crop, three.camera.width) == (3, 1, (80, 105), 480)
+    assert make_imaging("surfel", cam, (90, 160), render_factor=9).factor == 4   # at most the camera's resolution
+    with pytest.raises(PwsError, match="render_factor must be >= 0"):
+        make_imaging("surfel", cam, (90, 160), render_factor=-1)
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), axis=st.sampled_from(AXES), ties=st.booleans())
+def test_binned_rendering_and_bounds_equal_the_brute_force(seed, axis, ties):
+    """render_factor 1 on a 16x12 camera and a 3x4 model: 4x4 camera pixels per output pixel, binned 2x2.
+    The renderer draws the reference-binned cloud exactly, and dense poses stay inside the bounds."""
+    rng = np.random.default_rng(seed)
+    cam = CameraIntrinsics(16, 12, 14.0, 15.0, 7.5, 5.5, "cam")
+    depth = rng.uniform(0.8, 1.6, cam.shape)
+    depth[rng.random(cam.shape) < 0.15] = 0.0
+    if ties:
+        depth[:, :8] = 1.0
+    cloud = cloud_from_rgbd(depth, rng.random(cam.shape + (3,)).astype(np.float32), cam)
+    extra = rng.uniform([-0.6, -0.5, 0.7], [0.6, 0.5, 1.8], (4, 3))  # stray points, some beyond the image
+    cloud = Cloud(np.concatenate([cloud.points, extra]), np.concatenate([cloud.colors, rng.random((4, 3)).astype(np.float32)]))
+    im = make_imaging("surfel", cam, (3, 4), background=0.5, border=0, render_factor=1)
+    assert (im.factor, im.decimate, im.camera.width) == (1, 4, 4)
+    pts, cols = reference_bins(cloud.points, cloud.colors, im.camera)
+    r = SurfelRenderer(cloud, im, axis)
+    np.testing.assert_allclose(r.points_np, pts, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(r.colors_np, cols, atol=1e-6)
+    b = SCALE[axis] * rng.uniform(0.2, 1.0)
+    alphas = make_grid(b, b / 2)
+    frames = r.render_batch(alphas).numpy()
+    hulls = segment_hulls(r, alphas)
+    for i, a in enumerate(alphas):
+        np.testing.assert_allclose(frames[i], reference_frame(r.points_np, r.colors_np, im, axis, a), atol=1e-6)
+    for i in range(len(alphas) - 1):
+        for a in [alphas[i], alphas[i + 1], *rng.uniform(alphas[i], alphas[i + 1], 6)]:
+            f = reference_frame(r.points_np, r.colors_np, im, axis, a)
+            assert np.all(f >= hulls.lo[i] - 1e-7) and np.all(f <= hulls.hi[i] + 1e-7), (axis, i, a)
+
+
+def test_binned_alpha_zero_frame_is_the_block_mean_of_the_camera_image():
+    rng = np.random.default_rng(3)
+    cam = CameraIntrinsics(64, 48, 60.0, 60.0, 31.5, 23.5, "cam")
+    depth = rng.uniform(0.8, 2.0, cam.shape)
+    rgb = rng.random(cam.shape + (3,)).astype(np.float32)
+    im = make_imaging("surfel", cam, (12, 16), background=0.25, border=0, render_factor=2)
+    assert (im.factor, im.decimate) == (2, 2)
+    frame = SurfelRenderer(cloud_from_rgbd(depth, rgb, cam), im, "tz").render_batch([0.0])[0].numpy()
+    np.testing.assert_allclose(frame, rgb.astype(np.float64).reshape(12, 4, 16, 4, 3).mean(axis=(1, 3)), atol=1e-6)
 
 
 def test_auto_border_masks_what_enters_from_beyond_the_recording():

@@ -33,7 +33,7 @@ from ..core.errors import PwsError, require
 from ..core.motion import AXES, PAPER_RADIUS, UNITS
 
 from ..core.certify import COVERAGES, METHODS  # the certification core owns these lists
-from ..core.imaging import IMAGING_KINDS
+from ..core.imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS
 from ..core.partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX
 
 INPUT_MODES = ("auto", "pointcloud2", "rgbd")
@@ -103,7 +103,11 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("border", -1, "surfel imaging: output pixels masked (set to background) along the left/right and top/bottom "
               "edges in every frame and in the classifier's input; -1 = computed from the radii (what can enter from "
               "beyond the recorded image)", range=(-1, 4096), nodes=_PLAN, unit="px"),
-    ParamSpec("step_px", float(DEFAULT_STEP_PX), "surfel imaging: the plan's step moves no point more than this many native "
+    ParamSpec("render_factor", DEFAULT_RENDER_FACTOR, "surfel imaging: frames are rendered at this many times the model's "
+              "input size, then block-averaged to it; below the camera's resolution its pixels are binned into one surfel "
+              "per rendered pixel (2: a 640x480 camera and a 160x90 model render at 320x180, about 4x faster than "
+              "0 = the camera's full resolution, with about the same radii)", range=(0, 64), nodes=_PLAN),
+    ParamSpec("step_px", float(DEFAULT_STEP_PX), "surfel imaging: the plan's step moves no point more than this many rendered "
               "pixels (finer = tighter bounds, more frames)", range=(1e-3, 100.0), nodes=_PLAN, unit="px"),
     ParamSpec("coverage", "anchors", "coverage rule: anchors (p_A at a few anchor frames only; with surfel imaging they are "
               "placed from the distance bounds, at most num_anchors), pairwise (p_A at every partition, per segment), paper "
@@ -202,6 +206,7 @@ class PwsConfig:
     method: str = "pws_of"
     imaging: str = "surfel"
     border: int = -1
+    render_factor: int = DEFAULT_RENDER_FACTOR
     step_px: float = DEFAULT_STEP_PX
     coverage: str = "anchors"
     delta: float = 0.0
@@ -279,7 +284,7 @@ class PwsConfig:
                              batch_size=self.batch_size, coverage=self.coverage, num_anchors=self.num_anchors,
                              background=self.background, max_partitions=self.max_partitions,
                              min_partitions=self.min_partitions, imaging=self.imaging, border=self.border,
-                             step_px=self.step_px, max_memory_mb=self.max_memory_mb,
+                             step_px=self.step_px, max_memory_mb=self.max_memory_mb, render_factor=self.render_factor,
                              delta=self.delta if self.delta > 0 else None,
                              cms_sigma=self.cms_sigma if self.cms_sigma > 0 else None)
 

@@ -167,7 +167,8 @@ class FrameCertifier:
                 self._aspect_warned = True
                 self.log("warn", f"camera {intr.width}x{intr.height} is rendered at {size[1]}x{size[0]}: the aspect ratio changes "
                                  f"(fx and fy are scaled differently; imaging: surfel crops instead)")
-        im = make_imaging(c.imaging, intr, size, background=c.background, border=c.border, cloud=cloud, radii=c.radii)
+        im = make_imaging(c.imaging, intr, size, background=c.background, border=c.border, cloud=cloud, radii=c.radii,
+                          render_factor=c.render_factor)
         if im.kind == "surfel" and not self._aspect_warned:
             self._aspect_warned = True
             from ..core.certify import bounds_bytes, segment_bytes

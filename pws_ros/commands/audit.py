@@ -43,7 +43,7 @@ def run(args) -> int:
     cloud, intr = load_scene(args)
     CertifyConfig(background=args.background).validate()
     im = make_imaging(args.imaging, intr, args.size, background=args.background, border=args.border, cloud=cloud,
-                      radii={args.axis: args.radius})
+                      radii={args.axis: args.radius}, render_factor=args.render_factor)
     plan = plan_for(cloud, im, args.axis, args.radius, args.method, step_px=args.step_px, delta=args.delta,
                     max_partitions=args.max_partitions, min_partitions=args.min_partitions)
     renderer = make_renderer(cloud, im, plan.axis, device=args.device)

@@ -11,7 +11,7 @@ from ..core.certify import COVERAGES, CertifyConfig
 from ..core.cloud import Cloud
 from ..core.errors import PwsError, require
 from ..core.motion import AXES
-from ..core.imaging import IMAGING_KINDS
+from ..core.imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS
 from ..core.partition import DEFAULT_DELTA_PX, DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, PLAN_METHODS
 
 
@@ -62,8 +62,9 @@ def add_plan_args(p: argparse.ArgumentParser, methods=PLAN_METHODS, default="pws
     p.add_argument("--border", type=int, default=-1, metavar="PX",
                    help="surfel imaging: output pixels masked along the image edges in every frame; -1 = computed "
                         "from the radius (default)")
+    add_render_factor_arg(p)
     p.add_argument("--step-px", type=positive_float, default=DEFAULT_STEP_PX, metavar="PX",
-                   help=f"surfel imaging: the plan moves no point more than PX native pixels per step (default {DEFAULT_STEP_PX})")
+                   help=f"surfel imaging: the plan moves no point more than PX rendered pixels per step (default {DEFAULT_STEP_PX})")
     p.add_argument("--min-partitions", type=int, default=0, metavar="N",
                    help="refine the planned grid to at least N partitions (still sound; tighter bounds where the method "
                         "plans only a few frames; default 0 = as planned)")
@@ -78,6 +79,13 @@ def image_size(text: str) -> tuple[int, int]:
     if h < 1 or w < 1:
         raise argparse.ArgumentTypeError(f"size must be positive, got {text!r}")
     return h, w
+
+
+def add_render_factor_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--render-factor", type=int, default=DEFAULT_RENDER_FACTOR, metavar="K",
+                   help=f"surfel imaging: render frames at K times the classifier's input, then block-average to it; "
+                        f"below the camera's resolution the camera pixels are binned (default {DEFAULT_RENDER_FACTOR}; "
+                        f"0 = the camera's full resolution, slower)")
 
 
 def add_imaging_size_arg(p: argparse.ArgumentParser) -> None:
@@ -112,7 +120,8 @@ def config_from_args(args) -> CertifyConfig:
                          background=args.background, max_partitions=args.max_partitions,
                          min_partitions=args.min_partitions, delta=args.delta,
                          cms_sigma=args.cms_sigma, imaging=getattr(args, "imaging", "surfel"),
-                         border=getattr(args, "border", -1), step_px=getattr(args, "step_px", DEFAULT_STEP_PX)).validate()
+                         border=getattr(args, "border", -1), step_px=getattr(args, "step_px", DEFAULT_STEP_PX),
+                         render_factor=getattr(args, "render_factor", DEFAULT_RENDER_FACTOR)).validate()
 
 
 def load_scene(args) -> tuple[Cloud, CameraIntrinsics]:

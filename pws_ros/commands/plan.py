@@ -49,7 +49,8 @@ def run(args) -> int:
     cloud, intr = load_scene(args)
     if args.method == "pws" and looks_like_one_frame(cloud, intr):
         print(ONE_FRAME_WARNING, file=sys.stderr)
-    im = make_imaging(args.imaging, intr, args.size, border=args.border, cloud=cloud, radii={args.axis: args.radius})
+    im = make_imaging(args.imaging, intr, args.size, border=args.border, cloud=cloud, radii={args.axis: args.radius},
+                      render_factor=args.render_factor)
     plan = plan_for(cloud, im, args.axis, args.radius, args.method, step_px=args.step_px, delta=args.delta,
                     max_partitions=args.max_partitions, min_partitions=args.min_partitions)
     if args.out:

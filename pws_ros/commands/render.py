@@ -7,7 +7,7 @@ from ..core.bounds import render_plan
 from ..core.errors import require
 from ..core.imaging import IMAGING_KINDS, make_imaging, render_plan_surfel
 from ..core.partition import Plan
-from .common import add_imaging_size_arg, add_scene_args, emit, load_scene
+from .common import add_imaging_size_arg, add_render_factor_arg, add_scene_args, emit, load_scene
 
 
 def register(sub) -> None:
@@ -20,6 +20,7 @@ def register(sub) -> None:
     p.add_argument("--background", type=float, default=0.0, help="value of empty pixels (default 0.0)")
     p.add_argument("--imaging", choices=IMAGING_KINDS, default="surfel", help="imaging model (default surfel; see `pws certify --help`)")
     p.add_argument("--border", type=int, default=-1, metavar="PX", help="surfel imaging: masked border in output pixels (-1 = from the plan's radius)")
+    add_render_factor_arg(p)
     add_imaging_size_arg(p)
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--out", required=True, metavar="F.npz", help="output .npz")
@@ -32,7 +33,7 @@ def run(args) -> int:
     plan = Plan.load(args.plan)
     require(plan.axis == args.axis, f"--axis {args.axis} differs from the plan's axis {plan.axis}")
     im = make_imaging(args.imaging, intr, args.size, background=args.background, border=args.border, cloud=cloud,
-                      radii={plan.axis: plan.radius})
+                      radii={plan.axis: plan.radius}, render_factor=args.render_factor)
     if im.kind == "surfel":
         rp = render_plan_surfel(cloud, im, plan, device=args.device)
     else:

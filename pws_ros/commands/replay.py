@@ -158,8 +158,11 @@ def register(subparsers) -> None:
                         "point as the patch its depth pixel saw at the camera's resolution and block-averages a centred "
                         "crop to the model's input; paper paints one pixel per point at the model's size")
     c.add_argument("--border", type=int, default=None, help="surfel imaging: masked border in output pixels (-1 = from the radii)")
+    c.add_argument("--render-factor", type=int, default=None, metavar="K",
+                   help="surfel imaging: render at K times the model's input, camera pixels binned to it (default: config "
+                        "render_factor, 2; 0 = the camera's full resolution, slower)")
     c.add_argument("--anchors", type=int, default=None,
-                   help="most anchors per axis (budget n0 + anchors * n classifier calls; default: config num_anchors, 9)")
+                   help="most anchors per axis (budget n0 + anchors * n classifier calls; default: config num_anchors, 16)")
     c.add_argument("--audit-every", type=int, default=None,
                    help="self-audit every k-th frame: re-render poses in every segment and check every bound; a "
                         "violation turns the axis to ERROR (default: config audit_every, 0 = off)")
@@ -210,7 +213,7 @@ def build_config(args: argparse.Namespace):
               "device": "device", "batch_size": "batch_size", "model": "model_path", "classes": "classes_path",
               "denoiser": "denoiser_path", "dense_cloud": "dense_cloud_path", "sync_tolerance": "sync_tolerance_s",
               "preview_every": "preview_every", "max_partitions": "max_partitions",
-              "min_partitions": "min_partitions", "imaging": "imaging", "border": "border", "anchors": "num_anchors",
+              "min_partitions": "min_partitions", "imaging": "imaging", "border": "border", "render_factor": "render_factor", "anchors": "num_anchors",
               "audit_every": "audit_every"}
     for attr, name in simple.items():
         v = getattr(args, attr, None)

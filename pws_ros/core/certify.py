@@ -31,7 +31,7 @@ from .bounds import SegmentValues
 from .camera import CameraIntrinsics
 from .cloud import Cloud
 from .errors import require
-from .imaging import IMAGING_KINDS, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, segment_bounds, segment_hulls
+from .imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, segment_bounds, segment_hulls
 from .model import LoadedModel
 from .motion import UNITS, parse_axis
 from .partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, Plan, check_radius, validate_grid
@@ -63,6 +63,7 @@ class CertifyConfig:
     imaging: str = "surfel"
     border: int = -1
     step_px: float = DEFAULT_STEP_PX
+    render_factor: int = DEFAULT_RENDER_FACTOR
 
     def validate(self) -> "CertifyConfig":
         require(math.isfinite(self.sigma) and self.sigma > 0, f"sigma must be positive, got {self.sigma}")
@@ -75,6 +76,7 @@ class CertifyConfig:
         require(math.isfinite(self.background), f"background must be finite, got {self.background}")
         require(self.imaging in IMAGING_KINDS, f"unknown imaging model {self.imaging!r}: expected one of {', '.join(IMAGING_KINDS)}")
         require(math.isfinite(self.step_px) and self.step_px > 0, f"step_px must be positive, got {self.step_px}")
+        require(int(self.render_factor) >= 0, f"render_factor must be >= 0 (0: the camera's resolution), got {self.render_factor}")
         require(math.isfinite(self.max_memory_mb) and self.max_memory_mb >= 64,
                 f"max_memory_mb must be at least 64, got {self.max_memory_mb}")
         return self
@@ -154,7 +156,7 @@ def imaging_for(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, config
                 radii: dict[str, float]) -> Imaging:
     """The imaging of ``config`` for camera ``intr`` and ``model``'s input size (border from ``radii``)."""
     return make_imaging(config.imaging, intr, getattr(model, "input_size", None), background=config.background,
-                        border=int(config.border), cloud=cloud, radii=radii)
+                        border=int(config.border), cloud=cloud, radii=radii, render_factor=int(config.render_factor))
 
 
 def certify(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, axis: str, radius: float, method: str = "pws_of",

@@ -9,15 +9,23 @@ One home for what a certificate is about. Two models:
   box ``[umin, umax) x [vmin, vmax)`` of the projections of its four corners (pixel-edge coordinates,
   :func:`.motion.project`); it covers native pixel ``(r, c)`` when the pixel centre ``(c + 1/2, r + 1/2)``
   lies inside. A surfel with a corner at depth ``<= 0`` is not drawn. The pixel shows the covering
-  surfel whose *centre* is nearest (exact float ties: the lower point index, :data:`.motion.DEPTH_TIE_REL`),
-  or ``background`` where none covers it (invalid depth, disocclusions, what the recording never saw).
+  surfel nearest to the *recorded* camera centre (the least :func:`occlusion_key` ``X^2 + Y^2 + Z^2``,
+  float64; equal keys: the lower point index), or ``background`` where none covers it (invalid depth,
+  disocclusions, what the recording never saw). The order is fixed for the whole motion: for rotations
+  it is exactly the occlusion order along every ray (a rotation about the optical centre has no
+  parallax); for the translations of a certificate (millimetres) it can differ from the moved camera's
+  only between surfaces closer together along a ray than the translation. It also keeps neighbours of
+  one surface, whose patches overlap, from trading places as the camera turns (ordering by the moved
+  depth made every overlap of a slanted plane flip at one pose, a jump of the whole image).
   At ``alpha = 0`` a cloud back-projected from the camera's own depth image re-renders that image
   exactly (every surfel covers its own pixel centre); neighbours at equal depth overlap by
   ``SURFEL_OVERLAP`` pixels, so moving the camera opens no sampling holes, only true disocclusions.
 
-  The camera image is cropped, centred, to ``k`` times the classifier's input size (the largest integer
-  ``k`` that fits: a 640x480 camera and a 160x90 model give a 640x360 crop, ``k = 4``), rendered at that
-  native resolution, reduced by an exact ``k x k`` block mean (float64, then float32: what
+  The camera image is cropped, centred, to ``s k`` times the classifier's input size and rendered at
+  ``k`` times it (``render_factor``; 0 = the camera's resolution, ``s = 1``): with ``s > 1`` the cloud is
+  first binned (:func:`bin_cloud`, one surfel per ``s x s`` block of camera pixels, its mean colour), so
+  a 640x480 camera and a 160x90 model render at 320x180 (``k = 2``, ``s = 2``, the default) or at
+  640x360 (``render_factor: 0``, ``k = 4``). Frames are reduced by an exact ``k x k`` block mean (float64, then float32: what
   ``cv2.resize(..., INTER_AREA)`` does at an integer factor), and a border of ``border`` output pixels
   (columns left and right, rows top and bottom) is set to ``background`` in every frame and in the
   classifier's input. The border is computed from the requested radii (how far any point of the frame
@@ -32,9 +40,9 @@ segment: the colours of every surfel whose footprint can cover its centre there 
 covering surfel always hides, plus the background unless some surfel surely covers it throughout.
 Footprint corners are monotone between the split points of :func:`.motion.split_events`, so their
 ranges over the segment are read at its ends and at those split points, widened by ``EDGE_EPS`` pixels
-for float rounding; depths closer than :func:`.motion.depth_tie_margin` count as ties (both values kept),
-except bitwise-equal depths on the axes that shift every depth alike (tx, ty, tz, rz), which stay equal
-at every pose, so the renderer's lower-index rule decides them there too.
+for float rounding. The occlusion order is the renderer's own constant key (the same float64 tensor),
+so a surfel that surely covers a pixel throughout the segment hides every greater key, and equal keys
+follow the lower-index rule exactly: no depth tolerance is needed.
 The block mean is linear with positive weights, so the output pixel of every frame of the segment lies
 in the block means of ``lo`` and ``hi`` (widened by ``VALUE_EPS`` for float32 rounding). Distances to
 any frame ``y`` are then bounded by ``sum max((lo - y)^2, (hi - y)^2)`` (:class:`HullValues`).
@@ -54,7 +62,7 @@ import torch
 from .camera import CameraIntrinsics
 from .cloud import Cloud
 from .errors import PwsError, require
-from .motion import AXES, DEPTH_TIE_REL, depth, depth_tie_margin, parse_axis, project, split_events
+from .motion import AXES, depth, parse_axis, project, split_events
 from .partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, Plan, plan_partitions, plan_step, validate_grid
 from .render import DEFAULT_MAX_ELEMENTS, resolve_device
 
@@ -64,9 +72,7 @@ SAMPLE_JITTER = 0.33    # px: largest offset of a pixel's sample point from its 
 EDGE_EPS = 1e-6         # px: float tolerance of a footprint edge in the bounds
 VALUE_EPS = 1e-6        # float32 rounding of a block mean (values in [0, 1])
 SAFETY = 1.0 + 1e-9     # relative margin on float64 sums of squares
-# Axes along which the depth difference of two points does not change with alpha (tz shifts every
-# depth by alpha; tx, ty, rz leave depths alone): one comparison at the segment start orders them.
-CONSTANT_DEPTH_ORDER = ("tx", "ty", "tz", "rz")
+DEFAULT_RENDER_FACTOR = 2  # surfel frames at 2x the classifier's input (640x480 camera, 160x90 model: 2x2 bins)
 _CORNER_SIGNS = ((-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0))
 
 
@@ -84,6 +90,7 @@ class Imaging:
     background: float = 0.0
     source: CameraIntrinsics | None = field(default=None, compare=False)  # not sent between nodes
     crop: tuple[int, int] = (0, 0)
+    decimate: int = 1   # surfel: input pixels per rendered pixel (a side); the cloud is binned to match
 
     @property
     def out_shape(self) -> tuple[int, int]:
@@ -95,8 +102,10 @@ class Imaging:
         if self.kind == "paper":
             return f"paper imaging (one point per pixel) at {w}x{h}, holes = {self.background:g}"
         src = self.source or self.camera
-        return (f"surfel imaging: {src.width}x{src.height} camera, centred crop {self.camera.width}x{self.camera.height} "
-                f"at ({self.crop[0]}, {self.crop[1]}), {self.factor}x{self.factor} block mean to {w}x{h}, border "
+        s = self.decimate
+        binned = "" if s == 1 else (f", cloud binned {s}x{s} and rendered at {self.camera.width}x{self.camera.height}")
+        return (f"surfel imaging: {src.width}x{src.height} camera, centred crop {s * self.camera.width}x{s * self.camera.height} "
+                f"at ({self.crop[0]}, {self.crop[1]}){binned}, {self.factor}x{self.factor} block mean to {w}x{h}, border "
                 f"{self.border[0]} col / {self.border[1]} row masked, uncovered = {self.background:g}")
 
     @classmethod
@@ -104,10 +113,10 @@ class Imaging:
         """The inverse of :meth:`to_dict` given the native ``camera`` (e.g. what crossed a topic)."""
         try:
             im = cls(str(d["kind"]), camera, int(d["factor"]), (int(d["border_cols"]), int(d["border_rows"])),
-                     float(d["background"]), None, (int(d["crop_x0"]), int(d["crop_y0"])))
+                     float(d["background"]), None, (int(d["crop_x0"]), int(d["crop_y0"])), int(d.get("decimate", 1)))
         except (KeyError, TypeError, ValueError) as exc:
             raise PwsError(f"malformed imaging description: {exc}") from None
-        require(im.kind in IMAGING_KINDS and im.factor >= 1, f"malformed imaging description: {d}")
+        require(im.kind in IMAGING_KINDS and im.factor >= 1 and im.decimate >= 1, f"malformed imaging description: {d}")
         require(camera.width % im.factor == 0 and camera.height % im.factor == 0,
                 f"imaging factor {im.factor} does not divide the camera {camera.width}x{camera.height}")
         return im
@@ -116,27 +125,35 @@ class Imaging:
         return {"kind": self.kind, "factor": self.factor, "border_cols": self.border[0], "border_rows": self.border[1],
                 "crop_x0": self.crop[0], "crop_y0": self.crop[1], "native_width": self.camera.width,
                 "native_height": self.camera.height, "width": self.out_shape[1], "height": self.out_shape[0],
-                "background": self.background}
+                "background": self.background, "decimate": self.decimate}
 
 
 def make_imaging(kind: str, intr: CameraIntrinsics, model_size: tuple[int, int] | None, *, background: float = 0.0,
-                 border: int = -1, cloud: Cloud | None = None, radii: dict[str, float] | None = None) -> Imaging:
+                 border: int = -1, cloud: Cloud | None = None, radii: dict[str, float] | None = None,
+                 render_factor: int = 0) -> Imaging:
     """The imaging of camera ``intr`` for a classifier of input ``model_size`` = (H, W) (None: any size).
 
     ``border`` < 0 computes it from ``cloud`` and the motion ``radii`` ({axis: b}) of the frame
-    (:func:`auto_border`); 0 masks nothing."""
+    (:func:`auto_border`); 0 masks nothing. ``render_factor`` (surfel): frames are rendered at that many
+    times the classifier's input (0: the camera's own resolution, the largest factor that fits); a
+    smaller factor bins the camera's pixels ``decimate x decimate`` (see :func:`bin_cloud`)."""
     require(kind in IMAGING_KINDS, f"unknown imaging model {kind!r}: expected one of {', '.join(IMAGING_KINDS)}")
     require(math.isfinite(background), f"background must be finite, got {background}")
     h, w = (intr.height, intr.width) if model_size is None else (int(model_size[0]), int(model_size[1]))
     if kind == "paper":
         cam = intr if (h, w) == (intr.height, intr.width) else intr.scaled(w, h)
         return Imaging("paper", cam, 1, (0, 0), float(background), intr, (0, 0))
-    k = min(intr.width // w, intr.height // h)
-    require(k >= 1, f"camera {intr.width}x{intr.height} is smaller than the classifier's input {w}x{h}: "
-                    f"no crop of the camera image reduces to it (use imaging: paper to rescale, or a model for this size)")
-    x0, y0 = (intr.width - k * w) // 2, (intr.height - k * h) // 2
-    cam = replace(intr, width=k * w, height=k * h, cx=intr.cx - x0, cy=intr.cy - y0)
-    im = Imaging("surfel", cam, k, (0, 0), float(background), intr, (x0, y0))
+    k_max = min(intr.width // w, intr.height // h)
+    require(k_max >= 1, f"camera {intr.width}x{intr.height} is smaller than the classifier's input {w}x{h}: "
+                        f"no crop of the camera image reduces to it (use imaging: paper to rescale, or a model for this size)")
+    require(int(render_factor) >= 0, f"render_factor must be >= 0 (0: the camera's resolution), got {render_factor}")
+    k = min(int(render_factor), k_max) if render_factor else k_max
+    s = k_max // k                     # camera pixels per rendered pixel (a side)
+    x0, y0 = (intr.width - s * k * w) // 2, (intr.height - s * k * h) // 2
+    cam = replace(intr, width=s * k * w, height=s * k * h, cx=intr.cx - x0, cy=intr.cy - y0)
+    if s > 1:
+        cam = cam.scaled(k * w, k * h)
+    im = Imaging("surfel", cam, k, (0, 0), float(background), intr, (x0, y0), s)
     if border < 0:
         bx, by = auto_border(im, cloud, radii or {}) if cloud is not None else (0, 0)
     else:
@@ -166,8 +183,9 @@ def auto_border(im: Imaging, cloud: Cloud, radii: dict[str, float]) -> tuple[int
             if ok.any():
                 du = max(du, float(np.max(np.abs(u[ok] - u0[ok]))))
                 dv = max(dv, float(np.max(np.abs(v[ok] - v0[ok]))))
-    spare_x = min(im.crop[0], src.width - im.crop[0] - im.camera.width)
-    spare_y = min(im.crop[1], src.height - im.crop[1] - im.camera.height)
+    d = im.decimate  # the spare camera pixels beyond the crop, in rendered pixels
+    spare_x = min(im.crop[0], src.width - im.crop[0] - d * im.camera.width) / d
+    spare_y = min(im.crop[1], src.height - im.crop[1] - d * im.camera.height) / d
     k = im.factor
     return (int(math.ceil(max(0.0, du - spare_x) / k)), int(math.ceil(max(0.0, dv - spare_y) / k)))
 
@@ -190,7 +208,7 @@ class SurfelRenderer:
         self.device = resolve_device(device)
         self.max_elements = int(max_elements)
         self.samples = SamplePoints(self.intr.height, self.intr.width, self.device)
-        self._set_points(np.asarray(cloud.points, dtype=np.float64), np.asarray(cloud.colors, np.float32))
+        self._set_points(*bin_cloud(np.asarray(cloud.points, dtype=np.float64), np.asarray(cloud.colors, np.float32), imaging))
         if alpha_range is not None:
             # drop the surfels no pose of the range can show (in order: the tie rule is unchanged)
             keep = _HullSweep(self, *alpha_range).maybe_visible(*alpha_range)
@@ -203,6 +221,7 @@ class SurfelRenderer:
         self.corners_np = surfel_corners(pts, self.intr)                     # (4, P, 3)
         self.points = torch.as_tensor(pts, device=self.device)
         self.corners = torch.as_tensor(self.corners_np, device=self.device)
+        self.order_key = torch.as_tensor(occlusion_key(pts), device=self.device)
         bg = np.full((1, 3), self.background, dtype=np.float32)
         self.colors = torch.as_tensor(np.concatenate([colors, bg]), device=self.device)
 
@@ -229,7 +248,7 @@ class SurfelRenderer:
         if not len(p_i):
             return idx.view(B, H, W)
         key = b_i * (H * W) + pix
-        zz = zc[b_i, p_i]
+        zz = self.order_key[p_i]
         zmin = torch.full((B * H * W,), float("inf"), dtype=torch.float64, device=self.device)
         zmin.scatter_reduce_(0, key, zz, reduce="amin", include_self=True)
         at_min = zz == zmin[key]
@@ -258,6 +277,43 @@ class SurfelRenderer:
         step = int(chunk or max(1, min(64, self.chunk_size)))
         for s in range(0, len(alphas), step):
             yield s, self.render_batch(alphas[s:s + step])
+
+
+def occlusion_key(points: np.ndarray) -> np.ndarray:
+    """What orders overlapping surfels (the smaller wins; equal: the lower index): the squared distance
+    ``X^2 + Y^2 + Z^2`` of the point from the recorded camera centre, float64, fixed for the whole motion."""
+    p = np.asarray(points, dtype=np.float64)
+    return p[:, 0] * p[:, 0] + p[:, 1] * p[:, 1] + p[:, 2] * p[:, 2]
+
+
+def bin_cloud(points: np.ndarray, colors: np.ndarray, imaging: Imaging) -> tuple[np.ndarray, np.ndarray]:
+    """The cloud the surfels are made of when frames are rendered below the camera's resolution
+    (``imaging.decimate`` = s > 1): the points in front of the camera are binned by the rendered pixel
+    their ``alpha = 0`` projection falls in (``floor`` of the pixel-edge coordinates, bins beyond the image
+    included, since motion can bring them in); each bin becomes one point on the ray through its pixel
+    centre at the depth of its nearest point (equal depths: the lower index), with the mean colour of the
+    bin (float64, then float32). A camera's own ``s x s`` pixel block thus becomes one surfel, and the
+    ``alpha = 0`` frame is the block mean of the valid pixels' colours. Order: bins row by row.
+    ``s = 1`` returns the cloud unchanged."""
+    s = int(imaging.decimate)
+    if s == 1:
+        return points, colors
+    cam = imaging.camera
+    front = points[:, 2] > 0
+    pts, cols = points[front], colors[front]
+    if not len(pts):
+        return pts, cols
+    u, v, _ = project(pts, cam, "tx", 0.0)
+    col, row = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+    order = np.lexsort((pts[:, 2], col, row))            # by row, column, then nearest first (stable)
+    r_s, c_s = row[order], col[order]
+    start = np.flatnonzero(np.r_[True, (r_s[1:] != r_s[:-1]) | (c_s[1:] != c_s[:-1])])
+    count = np.diff(np.r_[start, len(order)])
+    z = pts[order[start], 2]
+    rr, cc = r_s[start].astype(np.float64), c_s[start].astype(np.float64)
+    out = np.stack([(cc - cam.cx) * z / cam.fx, (rr - cam.cy) * z / cam.fy, z], axis=1)  # u = cc + 1/2 at alpha 0
+    mean = np.add.reduceat(cols[order].astype(np.float64), start, axis=0) / count[:, None]
+    return out, mean.astype(np.float32)
 
 
 def surfel_corners(points: np.ndarray, intr: CameraIntrinsics) -> np.ndarray:
@@ -575,27 +631,27 @@ class _HullSweep:
         # surely covered: left edge at its rightmost, right edge at its leftmost (module doc)
         su0, su1 = u_hi.amin(0), u_lo.amax(0)
         sv0, sv1 = v_hi.amin(0), v_lo.amax(0)
-        if r.axis in CONSTANT_DEPTH_ORDER:
-            key_near, key_far = za, za
-        else:
-            key_near, key_far = z_lo, z_hi
-        # nearest depth any surely covering surfel can have, per native pixel
-        _, sp, spix = covered_pairs(su0[None], su1[None], sv0[None], sv1[None], sure_drawn[None], r.samples, -EDGE_EPS)
+        key = r.order_key   # constant in alpha: one comparison orders two surfels for the whole segment
+        # candidates: possibly covering at some alpha of the segment
+        _, cp, cpix = covered_pairs(sw_u0[None], sw_u1[None], sw_v0[None], sw_v1[None], maybe[None], r.samples, EDGE_EPS)
+        # the surely covering pairs among them (the sure box lies inside the sweep box, sure_drawn implies maybe)
+        su, sv = r.samples.su[cpix], r.samples.sv[cpix]
+        is_sure = (sure_drawn[cp] & (su0[cp] + EDGE_EPS <= su) & (su < su1[cp] - EDGE_EPS)
+                   & (sv0[cp] + EDGE_EPS <= sv) & (sv < sv1[cp] - EDGE_EPS))
+        sp, spix = cp[is_sure], cpix[is_sure]
+        # the least key of a surely covering surfel, per native pixel: it always hides greater keys
         sure_far = torch.full((H * W,), float("inf"), dtype=torch.float64, device=dev)
         if len(sp):
-            sure_far.scatter_reduce_(0, spix, key_far[sp], reduce="amin", include_self=True)
-        # candidates: possibly covering, not always behind the sure one (ties count)
-        _, cp, cpix = covered_pairs(sw_u0[None], sw_u1[None], sw_v0[None], sw_v1[None], maybe[None], r.samples, EDGE_EPS)
+            sure_far.scatter_reduce_(0, spix, key[sp], reduce="amin", include_self=True)
         limit = sure_far[cpix]
-        keep = key_near[cp] <= limit + depth_tie_margin(limit.clamp(max=1e300), xp=torch)
-        if r.axis in CONSTANT_DEPTH_ORDER and len(sp):
-            # bitwise-equal depths stay equal at every alpha on these axes (the same float operation on the
-            # same inputs), so the renderer's lower-index rule decides them: a later point never shows
+        keep = key[cp] <= limit
+        if len(sp):
+            # equal keys: the renderer's lower-index rule decides, so a later point never shows
             big = torch.iinfo(torch.long).max
             first = torch.full((H * W,), big, dtype=torch.long, device=dev)
-            tied = key_far[sp] == sure_far[spix]
+            tied = key[sp] == sure_far[spix]
             first.scatter_reduce_(0, spix[tied], sp[tied], reduce="amin", include_self=True)
-            keep &= ~((key_near[cp] == limit) & (cp > first[cpix]))
+            keep &= ~((key[cp] == limit) & (cp > first[cpix]))
         cp, cpix = cp[keep], cpix[keep]
         col = r.colors[:-1].to(torch.float64)
         bg = float(r.background)
@@ -640,6 +696,6 @@ def _block_mean64(x: torch.Tensor, im: Imaging) -> torch.Tensor:
     return out
 
 
-__all__ = ["AXES", "DEPTH_TIE_REL", "EDGE_EPS", "HullValues", "IMAGING_KINDS", "Imaging", "SURFEL_OVERLAP",
-           "SurfelRenderer", "auto_border", "make_imaging", "make_renderer", "plan_for", "reduce_frames",
+__all__ = ["AXES", "DEFAULT_RENDER_FACTOR", "EDGE_EPS", "HullValues", "IMAGING_KINDS", "Imaging", "SURFEL_OVERLAP",
+           "SurfelRenderer", "auto_border", "bin_cloud", "make_imaging", "make_renderer", "occlusion_key", "plan_for", "reduce_frames",
            "render_plan_surfel", "segment_bounds", "segment_hulls", "surfel_corners"]
