@@ -140,7 +140,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("seed", 0, "random seed; each frame and axis draws from its own stream derived from (seed, stamp, axis): "
               "deterministic for equal inputs, independent across frames and axes", range=(0, 2**31 - 1), nodes=_CERT),
     ParamSpec("batch_size", 256, "images per classifier call", range=(1, 1_000_000), nodes=_CERT),
-    ParamSpec("num_anchors", 16, "anchor frames for coverage=anchors (surfel imaging: the most anchors, i.e. a budget of "
+    ParamSpec("num_anchors", 24, "anchor frames for coverage=anchors (surfel imaging: the most anchors, i.e. a budget of "
               "n0 + num_anchors * n classifier calls per axis; a frame needing more gets a smaller radius)", range=(1, 100_000), nodes=_CERT),
     ParamSpec("audit_every", 0, "self-audit every k-th frame: re-render poses inside every segment of each certified axis "
               "(audit_poses per segment) and check every bound the certificate used; a violation turns that axis to "
@@ -227,7 +227,7 @@ class PwsConfig:
     alpha: float = 0.01
     seed: int = 0
     batch_size: int = 256
-    num_anchors: int = 16
+    num_anchors: int = 24
     audit_every: int = 0
     audit_poses: int = 8
     cms_sigma: float = 0.0

@@ -162,7 +162,7 @@ def register(subparsers) -> None:
                    help="surfel imaging: render at K times the model's input, camera pixels binned to it (default: config "
                         "render_factor, 2; 0 = the camera's full resolution, slower)")
     c.add_argument("--anchors", type=int, default=None,
-                   help="most anchors per axis (budget n0 + anchors * n classifier calls; default: config num_anchors, 16)")
+                   help="most anchors per axis (budget n0 + anchors * n classifier calls; default: config num_anchors, 24)")
     c.add_argument("--audit-every", type=int, default=None,
                    help="self-audit every k-th frame: re-render poses in every segment and check every bound; a "
                         "violation turns the axis to ERROR (default: config audit_every, 0 = off)")

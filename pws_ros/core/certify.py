@@ -52,7 +52,7 @@ class CertifyConfig:
     device: str = "cpu"
     batch_size: int = 500
     coverage: str = "anchors"
-    num_anchors: int = 16
+    num_anchors: int = 24
     background: float = 0.0
     max_partitions: int = DEFAULT_FRAME_BUDGET
     max_memory_mb: float = 2048.0
