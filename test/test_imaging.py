@@ -306,6 +306,27 @@ def test_place_anchors_covers_every_segment_within_the_target():
     assert place_anchors(row, alphas, 20, 0.0, max_anchors=9) == [20]  # no target radius: the centre only
 
 
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), S=st.integers(2, 140), target=st.floats(0.05, 3.0), budget=st.integers(1, 30))
+def test_place_anchors_reads_rows_lazily_with_the_same_result(seed, S, target, budget):
+    """Rows read block by block (partial=True) choose exactly the anchors that full rows choose."""
+    rng = np.random.default_rng(seed)
+    x = np.cumsum(rng.exponential(0.3, S + 1)) * rng.choice([-1, 1], S + 1).cumsum().clip(-3, 3)  # wandering path
+    alphas = np.linspace(-1.0, 1.0, S + 1)
+    alphas[np.argmin(np.abs(alphas))] = 0.0
+    centre = int(np.argmin(np.abs(alphas)))
+    width = rng.uniform(0, 0.5, S)
+
+    def full(j):
+        return np.maximum((x[:-1] - x[j]) ** 2, (x[1:] - x[j]) ** 2) + width ** 2
+
+    def piece(j, i0=0, i1=None):
+        return full(j)[i0:i1]
+
+    lazy = place_anchors(piece, alphas, centre, target ** 2, budget, partial=True)
+    assert lazy == place_anchors(full, alphas, centre, target ** 2, budget)
+
+
 def test_refine_plan_splits_only_where_frames_differ():
     alphas = make_grid(1.0, 0.5)  # -1, -0.5, 0, 0.5, 1
     plan = Plan("pws_of", "tx", 1.0, 0.5, 5, alphas)

@@ -38,17 +38,63 @@ def target_radius(k0: int, n0: int, n: int, sigma: float, alpha: float, max_anch
     return TARGET_MARGIN * float(cohen_radius(p, sigma))
 
 
-def place_anchors(dist_sq_row: Callable[[int], np.ndarray], alphas: np.ndarray, centre: int, target_sq: float,
-                  max_anchors: int) -> list[int]:
+ROW_BLOCK = 32         # segments per lazily computed piece of a candidate's distance row
+
+
+def place_anchors(dist_sq_row: Callable[..., np.ndarray], alphas: np.ndarray, centre: int, target_sq: float,
+                  max_anchors: int, *, partial: bool = False) -> list[int]:
     """Grid indices of the anchors (the centre first). ``dist_sq_row(j)`` returns ``D_i(x_j)^2`` for every
-    segment ``i`` (segment ``i`` joins grid points ``i`` and ``i + 1`` of ``alphas``; ``alphas[centre]`` = 0)."""
+    segment ``i`` (segment ``i`` joins grid points ``i`` and ``i + 1`` of ``alphas``; ``alphas[centre]`` = 0);
+    with ``partial``, ``dist_sq_row(j, i0, i1)`` returns them for segments ``i0 .. i1 - 1`` only, and a
+    candidate's row is computed only as far as the search needs it (the chosen anchors' rows in full)."""
     S = len(alphas) - 1
     rows: dict[int, np.ndarray] = {}
+    known: dict[int, np.ndarray] = {}
+
+    def part(j: int, i0: int, i1: int) -> np.ndarray:
+        """``D_i(x_j)^2`` for ``i0 <= i < i1``."""
+        i0, i1 = max(0, i0), min(S, i1)
+        if j in rows:
+            return rows[j][i0:i1]
+        if not partial:
+            rows[j] = np.asarray(dist_sq_row(j), dtype=np.float64)
+            return rows[j][i0:i1]
+        vals, done = known.setdefault(j, np.full(S, np.nan)), known.get(-1 - j)
+        if done is None:
+            done = known[-1 - j] = np.zeros(S, bool)
+        for b0 in range(i0 - i0 % ROW_BLOCK, i1, ROW_BLOCK):
+            b1 = min(S, b0 + ROW_BLOCK)
+            if not done[b0:b1].all():
+                vals[b0:b1] = np.asarray(dist_sq_row(j, b0, b1), dtype=np.float64)
+                done[b0:b1] = True
+        return vals[i0:i1]
 
     def row(j: int) -> np.ndarray:
-        if j not in rows:
-            rows[j] = np.asarray(dist_sq_row(j), dtype=np.float64)
-        return rows[j]
+        return part(j, 0, S)
+
+    def reach_with(j: int, side: str) -> float:
+        """How far the covered run reaches on ``side`` with ``j`` added (its row read only as needed)."""
+        if side == "r":
+            f = frontier_right(covered)
+            while f < S:
+                blk = slice(f, min(S, f + ROW_BLOCK))
+                ok = covered[blk] | (part(j, blk.start, blk.stop) < target_sq)
+                if ok.all():
+                    f = blk.stop
+                    continue
+                f += int(np.argmin(ok))
+                break
+            return float(alphas[f])
+        f = frontier_left(covered)
+        while f >= 0:
+            blk = slice(max(0, f - ROW_BLOCK + 1), f + 1)
+            ok = (covered[blk] | (part(j, blk.start, blk.stop) < target_sq))[::-1]
+            if ok.all():
+                f = blk.start - 1
+                continue
+            f -= int(np.argmin(ok))
+            break
+        return -float(alphas[f + 1])
 
     anchors = [centre]
     covered = row(centre) < target_sq
@@ -88,10 +134,9 @@ def place_anchors(dist_sq_row: Callable[[int], np.ndarray], alphas: np.ndarray, 
             cands = range(seg + 1, max(0, seg + 1 - SEARCH_WINDOW) - 1, -1)
         best, best_reach = None, -1.0
         for j in cands:
-            if j in anchors or not row(j)[seg] < target_sq:
+            if j in anchors or not part(j, seg, seg + 1)[0] < target_sq:
                 continue
-            cov = covered | (row(j) < target_sq)
-            reach = float(alphas[frontier_right(cov)]) if side == "r" else -float(alphas[frontier_left(cov) + 1])
+            reach = reach_with(j, side)
             if reach > best_reach:
                 best, best_reach = j, reach
         if best is None:

@@ -410,14 +410,10 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, model: LoadedModel, 
     hulls = segment_hulls(renderer, plan.alphas, max_bytes=bounds_bytes(config))
     timings = dict(timings, bounds=timings.get("bounds", 0.0) + time.perf_counter() - t0)
     t1 = time.perf_counter()
-    rows: dict[int, np.ndarray] = {}
+    def row(jj: int, i0: int = 0, i1: int | None = None) -> np.ndarray:
+        return hulls.dist_sq(frames[jj], slice(i0, i1))
 
-    def row(jj: int) -> np.ndarray:
-        if jj not in rows:
-            rows[jj] = hulls.dist_sq(frames[jj])
-        return rows[jj]
-
-    est_idx = np.array(place_anchors(row, plan.alphas, centre, target ** 2, max_anchors), dtype=np.int64)
+    est_idx = np.array(place_anchors(row, plan.alphas, centre, target ** 2, max_anchors, partial=True), dtype=np.int64)
     t_stats = time.perf_counter() - t1
     K = len(est_idx)
     counts = sc.sample_counts(torch.as_tensor(frames[est_idx]), int(config.n))
