@@ -17,7 +17,8 @@ from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_policy_name_from_kind,
                        qos_profile_system_default)
 
-from ..bridge.config import SPECS, ParamSpec, PwsConfig, check_consistency, config_from_params, spec_table, validate_param
+from ..bridge.config import PwsConfig, check_consistency, config_from_params
+from ..bridge.params import SPECS, ParamSpec, spec_table, validate_param
 from ..bridge.msgbuild import MESSAGE_TYPES
 from ..core.errors import PwsError
 from ._common import ShutdownSafePublisher
