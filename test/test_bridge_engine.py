@@ -10,7 +10,7 @@ import torch
 from pws_ros.bridge import msgbuild, scheme
 from pws_ros.bridge.config import config_from_params
 from pws_ros.bridge.engine import FrameCertifier, preview_indices, resolve_device_with_fallback
-from pws_ros.bridge.sync import PartitionAssembler
+from pws_ros.bridge.assembly import PartitionAssembler
 from pws_ros.core.camera import CameraIntrinsics
 from pws_ros.core.certify import certify
 from pws_ros.core.cloud import Cloud, cloud_from_rgbd

@@ -36,7 +36,7 @@ from ..core.motion import UNITS
 from ..core.result import Certificate, error_certificate
 from .config import PwsConfig, check_consistency, resolve_path
 from .scheme import PlanBundle, preview_image, rendered_plan_from_parts
-from .sync import AssembledFrame
+from .assembly import AssembledFrame
 
 LogFn = Callable[[str, str], None]   # (level: "info" | "warn" | "error", message)
 
