@@ -19,7 +19,7 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
 
 from ..bridge.config import PwsConfig, check_consistency, config_from_params
 from ..bridge.params import SPECS, ParamSpec, spec_table, validate_param
-from ..bridge.msgbuild import MESSAGE_TYPES
+from ..bridge.msgtypes import MESSAGE_TYPES
 from ..core.errors import PwsError
 from ._common import ShutdownSafePublisher
 
@@ -37,7 +37,7 @@ except ImportError:  # pragma: no cover
 # ---- message classes ----------------------------------------------------------------------
 
 def rclpy_types() -> SimpleNamespace:
-    """The ``types`` namespace of :mod:`pws_ros.bridge.msgbuild` from the installed ROS 2 packages."""
+    """The ``types`` namespace of :mod:`pws_ros.bridge.msgtypes` from the installed ROS 2 packages."""
     import importlib
 
     ns = SimpleNamespace(flavour="rclpy")

@@ -14,7 +14,7 @@ from __future__ import annotations
 import sys
 from typing import Any
 
-from ..bridge import msgbuild, msgconv, scheme
+from ..bridge import cloudconv, msgbuild, msgconv, scheme
 from ..bridge.sync import StampMatcher
 from ._common import HealthPublisher, PosePublishers, Worker, jump_logger, start
 
@@ -54,7 +54,7 @@ class PartitionPlannerNode:
         T = self.ctx.types
         self.engine.config = cfg = self.ctx.config
         cloud_msg, info_msg = matched["cloud"], matched["info"]
-        cloud, _ = msgconv.cloud_from_pointcloud2(cloud_msg)
+        cloud, _ = cloudconv.cloud_from_pointcloud2(cloud_msg)
         intr = msgconv.intrinsics_from_camera_info(info_msg)
         bundle = self.engine.plan_bundle(cloud, intr, matched.stamp_ns, cloud_msg.header.frame_id)
         if cfg.publish_poses:

@@ -15,7 +15,7 @@ import threading
 from collections import OrderedDict
 from typing import Any
 
-from ..bridge import msgbuild, msgconv, scheme
+from ..bridge import cloudconv, msgbuild, msgconv, scheme
 from ..bridge.engine import preview_frames
 from ..core.errors import PwsError
 from ._common import HealthPublisher, Worker, start
@@ -82,7 +82,7 @@ class ProjectorNode:
             for axis in bundle.plans:
                 self.pub_errors.publish(scheme.render_error_message(S, axis, f"no cloud with stamp {S} arrived within {CLOUD_WAIT_S:g} s", T))
             return
-        cloud, _ = msgconv.cloud_from_pointcloud2(cloud_msg)
+        cloud, _ = cloudconv.cloud_from_pointcloud2(cloud_msg)
         for axis, plan in bundle.plans.items():
             if self.worker.stopping:
                 return
