@@ -16,7 +16,7 @@ from collections import OrderedDict
 from typing import Any
 
 from ..bridge import cloudconv, msgbuild, msgconv, scheme
-from ..bridge.engine import preview_frames
+from ..bridge.preview import preview_frames
 from ..core.errors import PwsError
 from ._common import HealthPublisher, Worker, start
 
