@@ -16,22 +16,17 @@ from typing import Any
 
 from ..bridge import cloudconv, msgbuild, msgconv, scheme
 from ..bridge.sync import StampMatcher
-from ._common import HealthPublisher, PosePublishers, Worker, jump_logger, start
+from ._common import HealthPublisher, PosePublishers, Worker, jump_logger, stage_engine, start
 
 NODE_NAME = "partition_planner"
 
 
 class PartitionPlannerNode:
     def __init__(self, ctx: Any):
-        from ..bridge.engine import FrameCertifier
-
         self.ctx = ctx
         T = ctx.types
         cfg = ctx.config
-        self.engine = FrameCertifier(cfg, log=ctx.log, load=False)
-        self.engine.render_size  # noqa: B018 - reads the model's input size now (PwsError -> exit 2)
-        if cfg.method == "pws":
-            self.engine.dense_cloud  # noqa: B018
+        self.engine = stage_engine(ctx, input_size=True)
         self.matcher = StampMatcher(("cloud", "info"), tolerance_ns=0, queue_size=cfg.sync_queue_size, on_time_jump=jump_logger(ctx))
         self.pub_plan = ctx.publisher(T.String, "plan")
         self.pub_cloud = ctx.publisher(T.PointCloud2, "plan/cloud")

@@ -18,7 +18,7 @@ from typing import Any
 from ..bridge import cloudconv, msgbuild, msgconv, scheme
 from ..bridge.preview import preview_frames
 from ..core.errors import PwsError
-from ._common import HealthPublisher, Worker, start
+from ._common import HealthPublisher, Worker, stage_engine, start
 
 NODE_NAME = "projector"
 CLOUD_WAIT_S = 2.0
@@ -26,14 +26,10 @@ CLOUD_WAIT_S = 2.0
 
 class ProjectorNode:
     def __init__(self, ctx: Any):
-        from ..bridge.engine import FrameCertifier
-
         self.ctx = ctx
         T = ctx.types
         cfg = ctx.config
-        self.engine = FrameCertifier(cfg, log=ctx.log, load=False)
-        if cfg.method == "pws":
-            self.engine.dense_cloud  # noqa: B018 - load now (PwsError -> exit 2)
+        self.engine = stage_engine(ctx)
         self.clouds: OrderedDict[int, Any] = OrderedDict()
         self.max_clouds = 2 * cfg.max_pending_frames + 2
         self._cloud_cond = threading.Condition()
