@@ -155,6 +155,13 @@ def test_certify_config_mapping():
     cfg = C.config_from_params({"sigma": 0.25, "n0": 10, "n": 20, "delta": 0.0, "cms_sigma": 0.05})
     cc = cfg.certify_config()
     assert (cc.sigma, cc.n0, cc.n, cc.delta, cc.cms_sigma, cc.coverage) == (0.25, 10, 20, None, 0.05, "anchors")
+    # every setting the core reads arrives, by its own name (written out: the mapping is by field name)
+    given = {"alpha": 0.05, "seed": 7, "batch_size": 16, "coverage": "pairwise", "num_anchors": 4, "background": 0.3,
+             "max_partitions": 100, "max_memory_mb": 512.0, "min_partitions": 5, "imaging": "paper", "border": 3,
+             "step_px": 0.5, "render_factor": 1, "delta": 2.0, "cms_sigma": 0.0}
+    cc = C.config_from_params(given).certify_config()
+    assert {k: getattr(cc, k) for k in given} == {**given, "cms_sigma": None}
+    assert cc.chunk == 128 and cc.device == "cpu"
 
 
 def test_docs_ros2_is_in_sync_with_the_table_and_schema():

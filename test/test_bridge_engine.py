@@ -9,8 +9,9 @@ import torch
 
 from pws_ros.bridge import msgbuild, scheme
 from pws_ros.bridge.config import config_from_params
-from pws_ros.bridge.engine import FrameCertifier, preview_indices, resolve_device_with_fallback
-from pws_ros.bridge.sync import PartitionAssembler
+from pws_ros.bridge.engine import FrameCertifier, resolve_device_with_fallback
+from pws_ros.bridge.preview import preview_indices
+from pws_ros.bridge.assembly import PartitionAssembler
 from pws_ros.core.camera import CameraIntrinsics
 from pws_ros.core.certify import certify
 from pws_ros.core.cloud import Cloud, cloud_from_rgbd
@@ -79,6 +80,8 @@ def test_paper_imaging_rescales_the_camera_to_the_model_input(model_path):
     wide = CameraIntrinsics(64, 36, 60.0, 60.0, 31.5, 17.5, "cam")
     res = eng.process(scene(wide), wide, 2)
     assert res.camera.shape == (24, 32) and any("aspect ratio changes" in m for _, m in logs)
+    eng.process(scene(wide), wide, 3)  # warned once per engine; paper imaging logs no surfel description
+    assert sum("aspect ratio changes" in m for _, m in logs) == 1 and not any("memory per axis" in m for _, m in logs)
 
 
 def test_surfel_imaging_crops_the_camera_to_a_multiple_of_the_model_input(model_path):
@@ -92,6 +95,7 @@ def test_surfel_imaging_crops_the_camera_to_a_multiple_of_the_model_input(model_
     res = eng.process(scene(wide), wide, 2)  # a centred 32x24 crop (x0 = 19, y0 = 6), factor 1
     assert (res.camera.width, res.camera.height, res.camera.cx, res.camera.cy) == (32, 24, 34.5 - 19, 17.5 - 6)
     assert not any("aspect ratio changes" in m for _, m in logs)
+    assert sum("memory per axis" in m for _, m in logs) == 1  # the imaging description is logged once per engine
     small = CameraIntrinsics(16, 12, 20.0, 20.0, 7.5, 5.5, "cam")
     (c,) = eng.process(scene(small), small, 3).certificates
     assert c.status == "error" and "smaller than the classifier's input 32x24" in c.reason

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pws_ros.bridge import msgbuild, msgconv
+from pws_ros.bridge import cloudconv, msgbuild, msgconv
 from pws_ros.core.camera import CameraIntrinsics
 from pws_ros.core.cloud import Cloud
 from pws_ros.core.cloud import cloud_from_rgbd as core_cloud_from_rgbd
@@ -347,7 +347,7 @@ def test_pointcloud2_layouts(big, xyz_kind, color_kind):
     pts = r.uniform(-1, 1, (12, 3)) + [0, 0, 2]
     cols = r.integers(0, 256, (12, 3))
     msg = make_pc2(pts, cols, color_kind=color_kind, xyz_kind=xyz_kind, shape=(3, 4), point_pad=3, row_pad=5, big=big, lead=4)
-    conv = msgconv.cloud_from_pointcloud2(msg)
+    conv = cloudconv.cloud_from_pointcloud2(msg)
     cloud, shape = conv
     assert shape == (3, 4) and conv.has_color
     tol = 1e-6 if xyz_kind == "f4" else 0
@@ -358,7 +358,7 @@ def test_pointcloud2_layouts(big, xyz_kind, color_kind):
 def test_pointcloud2_nan_inf_and_zero_points_are_dropped():
     pts = np.array([[0, 0, 1.0], [np.nan, 0, 1], [0, np.inf, 1], [0, 0, 0], [1, 2, 3.0], [0.5, -0.5, -np.inf]])
     cols = np.arange(18).reshape(6, 3)
-    conv = msgconv.cloud_from_pointcloud2(make_pc2(pts, cols, shape=(2, 3)))
+    conv = cloudconv.cloud_from_pointcloud2(make_pc2(pts, cols, shape=(2, 3)))
     np.testing.assert_array_equal(conv.valid, [True, False, False, False, True, False])
     np.testing.assert_allclose(conv.cloud.points, pts[[0, 4]])
     np.testing.assert_allclose(conv.cloud.colors * 255, cols[[0, 4]], atol=1e-4)
@@ -366,7 +366,7 @@ def test_pointcloud2_nan_inf_and_zero_points_are_dropped():
 
 def test_pointcloud2_without_colour_is_grey_and_flagged():
     pts = np.array([[0, 0, 1.0], [0.1, 0, 1.0]])
-    conv = msgconv.cloud_from_pointcloud2(make_pc2(pts))
+    conv = cloudconv.cloud_from_pointcloud2(make_pc2(pts))
     cloud, shape = conv
     assert shape is None and not conv.has_color
     np.testing.assert_allclose(cloud.colors, 0.5)
@@ -374,7 +374,7 @@ def test_pointcloud2_without_colour_is_grey_and_flagged():
 
 def test_pointcloud2_rgba_and_separate_channels():
     pts = np.array([[0, 0, 1.0]])
-    conv = msgconv.cloud_from_pointcloud2(make_pc2(pts, [[10, 20, 30]], name="rgba", color_kind="u4"))
+    conv = cloudconv.cloud_from_pointcloud2(make_pc2(pts, [[10, 20, 30]], name="rgba", color_kind="u4"))
     np.testing.assert_allclose(conv.cloud.colors * 255, [[10, 20, 30]], atol=1e-4)
     # r, g, b uint8 fields
     fields = [T.PointField(name=k, offset=o, datatype=7, count=1) for k, o in (("x", 0), ("y", 4), ("z", 8))]
@@ -383,7 +383,7 @@ def test_pointcloud2_rgba_and_separate_channels():
     rec["z"], rec["r"], rec["g"], rec["b"] = 2.0, 200, 100, 50
     msg = T.PointCloud2(header=header(), height=1, width=1, fields=fields, is_bigendian=False, point_step=16, row_step=16,
                         data=rec.view(np.uint8).copy(), is_dense=True)
-    conv = msgconv.cloud_from_pointcloud2(msg)
+    conv = cloudconv.cloud_from_pointcloud2(msg)
     np.testing.assert_allclose(conv.cloud.colors * 255, [[200, 100, 50]], atol=1e-4)
 
 
@@ -391,44 +391,44 @@ def test_pointcloud2_bad_inputs():
     pts = np.array([[0, 0, 1.0], [0.1, 0, 1.0]])
     msg = make_pc2(pts, [[1, 2, 3], [4, 5, 6]], truncate=1)
     with pytest.raises(PwsError, match="truncated"):
-        msgconv.cloud_from_pointcloud2(msg)
+        cloudconv.cloud_from_pointcloud2(msg)
     msg = make_pc2(pts)
     msg.fields = [f for f in msg.fields if f.name != "z"]
     with pytest.raises(PwsError, match="no 'z' field"):
-        msgconv.cloud_from_pointcloud2(msg)
+        cloudconv.cloud_from_pointcloud2(msg)
     msg = make_pc2(pts)
     msg.fields[0] = T.PointField(name="x", offset=0, datatype=3, count=1)
     with pytest.raises(PwsError, match="'x' is INT16: expected FLOAT32 or FLOAT64"):
-        msgconv.cloud_from_pointcloud2(msg)
+        cloudconv.cloud_from_pointcloud2(msg)
     msg = make_pc2(pts, [[1, 2, 3], [4, 5, 6]], color_kind="i2" if False else "f4")
     msg.fields[3] = T.PointField(name="rgb", offset=13, datatype=2, count=1)
     with pytest.raises(PwsError, match="'rgb' is UINT8: expected packed"):
-        msgconv.cloud_from_pointcloud2(msg)
+        cloudconv.cloud_from_pointcloud2(msg)
     msg = make_pc2(pts)
     msg.fields[2] = T.PointField(name="z", offset=10, datatype=7, count=1)
     with pytest.raises(PwsError, match="does not fit in point_step 12"):
-        msgconv.cloud_from_pointcloud2(msg)
+        cloudconv.cloud_from_pointcloud2(msg)
     msg = make_pc2(pts)
     msg.row_step = 10
     with pytest.raises(PwsError, match="row_step 10 is smaller"):
-        msgconv.cloud_from_pointcloud2(msg)
+        cloudconv.cloud_from_pointcloud2(msg)
     msg = make_pc2(pts)
     msg.fields[1] = T.PointField(name="y", offset=4, datatype=42, count=1)
     with pytest.raises(PwsError, match="unknown datatype 42"):
-        msgconv.cloud_from_pointcloud2(msg)
+        cloudconv.cloud_from_pointcloud2(msg)
 
 
 def test_pointcloud2_roundtrip_through_builder():
     r = np.random.default_rng(5)
     cloud = Cloud(r.uniform(-1, 1, (20, 3)) + [0, 0, 3], r.integers(0, 256, (20, 3)).astype(np.uint8))
     msg = msgbuild.cloud_to_pointcloud2(header(), cloud, T, organized_shape=(4, 5))
-    back, shape = msgconv.cloud_from_pointcloud2(msg)
+    back, shape = cloudconv.cloud_from_pointcloud2(msg)
     assert shape == (4, 5)
     np.testing.assert_allclose(back.points, cloud.points, rtol=1e-6)
     np.testing.assert_array_equal(np.rint(back.colors * 255), np.rint(cloud.colors * 255))
     # and through CDR, as a bag or DDS would carry it
     raw = T.typestore.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2")
-    again, _ = msgconv.cloud_from_pointcloud2(T.typestore.deserialize_cdr(raw, "sensor_msgs/msg/PointCloud2"))
+    again, _ = cloudconv.cloud_from_pointcloud2(T.typestore.deserialize_cdr(raw, "sensor_msgs/msg/PointCloud2"))
     np.testing.assert_array_equal(again.points, back.points)
 
 
@@ -444,7 +444,7 @@ def test_intrinsics_estimated_from_an_organized_cloud():
     pts = organized_grid(intr, depth)
     pts[::7] = np.nan
     msg = make_pc2(pts, np.zeros((len(pts), 3)), shape=(12, 16), xyz_kind="f8")
-    cloud, est, has_color = msgconv.cloud_and_intrinsics_from_pointcloud2(msg)
+    cloud, est, has_color = cloudconv.cloud_and_intrinsics_from_pointcloud2(msg)
     assert has_color and est.shape == (12, 16) and est.frame_id == "cam"
     for k in ("fx", "fy", "cx", "cy"):
         assert getattr(est, k) == pytest.approx(getattr(intr, k), rel=1e-9, abs=1e-9)
@@ -456,19 +456,19 @@ def test_not_a_pinhole_grid_is_refused():
     pts = pts[np.random.default_rng(0).permutation(len(pts))]  # shuffled: not an image grid
     msg = make_pc2(pts, shape=(12, 16))
     with pytest.raises(PwsError, match="not a pinhole image grid"):
-        msgconv.cloud_and_intrinsics_from_pointcloud2(msg)
+        cloudconv.cloud_and_intrinsics_from_pointcloud2(msg)
 
 
 def test_pointcloud2_with_camera_info():
     intr = CameraIntrinsics(16, 12, 20.0, 22.0, 7.5, 5.5)
     pts = organized_grid(intr, np.full((12, 16), 2.0))
     msg = make_pc2(pts, shape=(12, 16))
-    _, got, _ = msgconv.cloud_and_intrinsics_from_pointcloud2(msg, camera_info(16, 12, fx=20.0, fy=22.0, cx=7.5, cy=5.5))
+    _, got, _ = cloudconv.cloud_and_intrinsics_from_pointcloud2(msg, camera_info(16, 12, fx=20.0, fy=22.0, cx=7.5, cy=5.5))
     assert (got.fx, got.cx) == (20.0, 7.5)
     with pytest.raises(PwsError, match="organized PointCloud2 16x12 and CameraInfo 8x6 differ in size"):
-        msgconv.cloud_and_intrinsics_from_pointcloud2(msg, camera_info(8, 6))
+        cloudconv.cloud_and_intrinsics_from_pointcloud2(msg, camera_info(8, 6))
     flat = make_pc2(pts)  # unorganized
     with pytest.raises(PwsError, match="unorganized PointCloud2"):
-        msgconv.cloud_and_intrinsics_from_pointcloud2(flat)
-    _, got, _ = msgconv.cloud_and_intrinsics_from_pointcloud2(flat, fallback=intr)
+        cloudconv.cloud_and_intrinsics_from_pointcloud2(flat)
+    _, got, _ = cloudconv.cloud_and_intrinsics_from_pointcloud2(flat, fallback=intr)
     assert got.fx == 20.0 and got.frame_id == "cam"

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from conftest import shared_path
-from pws_ros.bridge import msgbuild, msgconv
+from pws_ros.bridge import cloudconv, msgbuild, msgconv
 from pws_ros.core.errors import PwsError
 
 
@@ -33,7 +33,7 @@ def realsense():
 
 
 def test_kinect_organized_cloud(kinect):
-    conv = msgconv.cloud_from_pointcloud2(kinect)
+    conv = cloudconv.cloud_from_pointcloud2(kinect)
     cloud, shape = conv
     assert shape == (480, 640) and conv.has_color
     n = kinect.width * kinect.height
@@ -53,7 +53,7 @@ def test_kinect_organized_cloud(kinect):
         np.testing.assert_allclose(cloud.colors[k[i]] * 255, [(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], atol=1e-3)
     assert n == 640 * 480
     # the organized grid gives the Kinect's intrinsics
-    _, intr, _ = msgconv.cloud_and_intrinsics_from_pointcloud2(kinect)
+    _, intr, _ = cloudconv.cloud_and_intrinsics_from_pointcloud2(kinect)
     assert intr.fx == pytest.approx(525.0, rel=1e-5) and intr.fy == pytest.approx(525.0, rel=1e-5)
     assert intr.cx == pytest.approx(319.5, abs=1e-3) and intr.cy == pytest.approx(239.5, abs=1e-3)
     assert intr.frame_id == "camera_rgb_optical_frame"
@@ -64,9 +64,9 @@ def test_kinect_organized_cloud(kinect):
 
 def test_kinect_cloud_roundtrip_through_our_pointcloud2(kinect):
     T = msgbuild.rosbags_types()
-    cloud, _ = msgconv.cloud_from_pointcloud2(kinect)
+    cloud, _ = cloudconv.cloud_from_pointcloud2(kinect)
     msg = msgbuild.cloud_to_pointcloud2(kinect.header, cloud, T)
-    back, shape = msgconv.cloud_from_pointcloud2(T.typestore.deserialize_cdr(T.typestore.serialize_cdr(msg, msg.__msgtype__), msg.__msgtype__))
+    back, shape = cloudconv.cloud_from_pointcloud2(T.typestore.deserialize_cdr(T.typestore.serialize_cdr(msg, msg.__msgtype__), msg.__msgtype__))
     assert shape is None and len(back) == len(cloud)
     np.testing.assert_array_equal(back.points, cloud.points)  # float32 in, float32 out
     np.testing.assert_allclose(back.colors, cloud.colors, atol=1e-6)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pws_ros.bridge import msgbuild, scheme
-from pws_ros.bridge.sync import PartitionAssembler
+from pws_ros.bridge.assembly import PartitionAssembler
 from pws_ros.core.bounds import render_plan
 from pws_ros.core.camera import CameraIntrinsics
 from pws_ros.core.cloud import cloud_from_rgbd

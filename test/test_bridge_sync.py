@@ -8,7 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pws_ros.bridge.sync import LatestSlot, PartitionAssembler, RateMeter, StampMatcher
+from pws_ros.bridge.assembly import PartitionAssembler
+from pws_ros.bridge.sync import LatestSlot, RateMeter, StampMatcher
 from pws_ros.core.errors import PwsError
 
 MS = 1_000_000

@@ -60,6 +60,15 @@ def test_from_calibration_yaml(tmp_path):
     assert data["image_width"] == 640 and data["image_height"] == 480
 
 
+def test_missing_or_malformed_camera_file_is_one_line_error(tmp_path):
+    with pytest.raises(PwsError, match=r"^camera file not found: .*nope\.yaml$"):
+        CameraIntrinsics.from_yaml(tmp_path / "nope.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("image_width: [640\n")
+    with pytest.raises(PwsError, match=r"^camera file .*bad\.yaml is not valid YAML: [^\n]*$"):
+        CameraIntrinsics.from_yaml(bad)
+
+
 def test_from_flat_and_k_dicts():
     flat = CameraIntrinsics.from_dict({"width": 32, "height": 24, "fx": 30, "fy": 31, "cx": 15.5, "cy": 11.5})
     assert (flat.width, flat.height, flat.fx, flat.fy, flat.cx, flat.cy) == (32, 24, 30.0, 31.0, 15.5, 11.5)

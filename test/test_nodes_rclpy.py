@@ -167,7 +167,7 @@ def test_four_nodes_one_certification_per_frame(ros, make_model_file):
 
 
 def _uses(node_name, param):
-    from pws_ros.bridge.config import SPECS
+    from pws_ros.bridge.params import SPECS
 
     return node_name in SPECS[param].nodes
 

@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from conftest import MeanThresholdNet, shared_path
 from pws_ros.bagio import BagReader
-from pws_ros.bridge import msgbuild, msgconv
+from pws_ros.bridge import cloudconv, msgbuild, msgconv
 from pws_ros.bridge.config import PwsConfig
 from pws_ros.bridge.inputs import InputAssembler, convert
 from pws_ros.core.camera import CameraIntrinsics
@@ -182,7 +182,7 @@ def test_tf_static_extrinsic_is_found_and_registers_like_the_brute_force(tmp_pat
     want_cloud = cloud_from_rgbd(want, np.zeros((24, 32, 3), np.uint8), CCAM)
     with BagReader(tmp_path / "out") as bag:
         msg = bag.deserialize(next(iter(bag.messages(["/cloud"]))))
-    got, _shape = msgconv.cloud_from_pointcloud2(msg)
+    got, _shape = cloudconv.cloud_from_pointcloud2(msg)
     assert len(got) == len(want_cloud) > 0.5 * 24 * 32
     np.testing.assert_allclose(np.sort(got.points, axis=0), np.sort(want_cloud.points, axis=0), atol=1e-6)
 

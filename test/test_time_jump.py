@@ -7,7 +7,8 @@ from __future__ import annotations
 import pytest
 
 from pws_ros.bridge import msgbuild, msgconv
-from pws_ros.bridge.sync import PartitionAssembler, StampMatcher
+from pws_ros.bridge.assembly import PartitionAssembler
+from pws_ros.bridge.sync import StampMatcher
 from pws_ros.nodes._common import ShutdownSafePublisher
 from test_nodes_logic import T0, Bus, Context, four_nodes, params, play, wait_for
 

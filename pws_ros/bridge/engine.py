@@ -35,8 +35,10 @@ from ..core.errors import PwsError, require
 from ..core.motion import UNITS
 from ..core.result import Certificate, error_certificate
 from .config import PwsConfig, check_consistency, resolve_path
-from .scheme import PlanBundle, preview_image, rendered_plan_from_parts
-from .sync import AssembledFrame
+from .preview import render_previews
+from .scheme import PlanBundle, rendered_plan_from_parts
+from .selfaudit import audit_certificate
+from .assembly import AssembledFrame
 
 LogFn = Callable[[str, str], None]   # (level: "info" | "warn" | "error", message)
 
@@ -107,7 +109,8 @@ class FrameCertifier:
         self._denoiser = denoiser
         self._dense = dense_cloud
         self._lock = threading.Lock()
-        self._aspect_warned = False
+        self._aspect_warned = False       # paper imaging: the aspect-ratio warning was given
+        self._imaging_described = False   # surfel imaging: its description and memory estimate were logged
         self._sigma_checked: float | None = None
         self._frames_seen = 0
         if load:
@@ -169,8 +172,8 @@ class FrameCertifier:
                                  f"(fx and fy are scaled differently; imaging: surfel crops instead)")
         im = make_imaging(c.imaging, intr, size, background=c.background, border=c.border, cloud=cloud, radii=c.radii,
                           render_factor=c.render_factor)
-        if im.kind == "surfel" and not self._aspect_warned:
-            self._aspect_warned = True
+        if im.kind == "surfel" and not self._imaging_described:
+            self._imaging_described = True
             from ..core.certify import bounds_bytes, segment_bytes
 
             fit = min(int(c.max_partitions), int(bounds_bytes(self.certify_config()) // segment_bytes(im)))
@@ -348,52 +351,10 @@ class FrameCertifier:
             cert.timings["plan"] = t_plan
             cert.timings["total"] = time.perf_counter() - t0
             if previews is not None and preview_every > 0:
-                previews.extend(self.preview(src, imaging, plan, preview_every))
+                previews.extend(render_previews(src, imaging, plan, preview_every, device=self.device))
             return self._stamp(cert)
 
         return self._guard(axis, run)
-
-    def audit(self, cert: Certificate, cloud: Cloud, imaging: Any, plan: Any) -> None:
-        """Self-audit (``audit_every``): re-render ``audit_poses`` poses inside every segment of ``plan``
-        through the same imaging model and check every bound the certificate used (:mod:`pws_ros.core.audit`,
-        its own distance code). Recorded in ``cert.bounds['audit']``; a violation makes the axis ERROR."""
-        from ..core.audit import audit_bounds
-        from ..core.certify import anchor_indices
-        from ..core.imaging import make_renderer, segment_bounds
-
-        try:
-            renderer = make_renderer(cloud, imaging, plan.axis, device=self.device)
-            values = segment_bounds(renderer, cloud, imaging, plan.alphas)
-            anchors = cert.bounds.get("anchors")
-            if anchors is None and cert.coverage == "anchors":
-                anchors = plan.alphas[anchor_indices(plan.num_partitions, self.config.num_anchors)]
-            report = audit_bounds(renderer, plan.alphas, values, anchor_alphas=anchors,
-                                  poses_per_segment=int(self.config.audit_poses), seed=int(cert.seed or 0))
-        except Exception as exc:  # an audit that cannot run says so; it never passes silently
-            self.log("error", f"self-audit of {plan.axis} failed to run: {type(exc).__name__}: {exc}")
-            cert.bounds["audit"] = {"error": f"{type(exc).__name__}: {exc}"}
-            return
-        cert.bounds["audit"] = {"poses": report.poses_checked, "violations": len(report.violations),
-                                "worst_ratio": report.worst_ratio, "seconds": report.seconds}
-        self.log("info", f"self-audit {plan.axis}: {report.poses_checked} poses re-rendered in {plan.num_partitions - 1} "
-                         f"segments, {len(report.violations)} bound violation(s), worst measured/bound "
-                         f"{report.worst_ratio:.6g}, {report.seconds:.1f} s")
-        if report.violations:
-            v = report.violations[0]
-            self.log("error", f"self-audit of {plan.axis}: {len(report.violations)} bound violation(s), e.g. segment "
-                              f"{v.segment} alpha={v.alpha!r}: {v.measured:.6g} > {v.bound:.6g}")
-            cert.status, cert.certified, cert.radius = "error", False, 0.0
-            cert.reason = (f"self-audit found {len(report.violations)} bound violation(s) in {report.poses_checked} "
-                           f"re-rendered poses: the certificate is withdrawn")
-
-    def preview(self, cloud: Cloud, imaging: Any, plan: Any, every: int) -> list[tuple[str, int, np.ndarray]]:
-        """Every ``every``-th frame of a plan (and its alpha = 0 frame) rendered as uint8 RGB."""
-        from ..core.imaging import make_renderer
-
-        idx = preview_indices(plan.alphas, every)
-        renderer = make_renderer(cloud, imaging, plan.axis, device=self.device)
-        frames = renderer.render_batch(np.asarray(plan.alphas)[idx]).cpu().numpy()
-        return [(plan.axis, int(i), preview_image(f)) for i, f in zip(idx, frames)]
 
     def process(self, cloud: Cloud, intr: CameraIntrinsics, stamp_ns: int, dense_cloud: Cloud | None = None, *,
                 frame_id: str = "", preview_every: int = 0,
@@ -425,7 +386,8 @@ class FrameCertifier:
                     cert = self.certify_axis(cloud, imaging, axis, dense_cloud, preview_every, previews, plans,
                                              stamp_ns=int(stamp_ns))
                     if audit and cert.status != "error" and axis in plans:
-                        self.audit(cert, self.source_cloud(cloud, dense_cloud), imaging, plans[axis])
+                        audit_certificate(cert, self.source_cloud(cloud, dense_cloud), imaging, plans[axis], device=self.device,
+                                          num_anchors=self.config.num_anchors, audit_poses=self.config.audit_poses, log=self.log)
                     certs.append(cert)
                 timings[axis] = time.perf_counter() - t1
         timings["total"] = time.perf_counter() - t0
@@ -433,19 +395,4 @@ class FrameCertifier:
                            imaging.camera if imaging is not None else None, timings, previews)
 
 
-def preview_indices(alphas: Any, every: int) -> list[int]:
-    """Indices ``0, k, 2k, ...`` of a grid plus the index of ``alpha = 0``."""
-    alphas = np.asarray(alphas)
-    keep = set(range(0, len(alphas), max(1, int(every))))
-    zero = np.nonzero(alphas == 0.0)[0]
-    if len(zero):
-        keep.add(int(zero[0]))
-    return sorted(keep)
-
-
-def preview_frames(axis: str, rendered: Any, every: int) -> list[tuple[str, int, np.ndarray]]:
-    """Every ``every``-th frame of a rendered plan and its alpha = 0 frame, as uint8 RGB."""
-    return [(axis, i, preview_image(rendered.frames[i])) for i in preview_indices(rendered.alphas, every)]
-
-
-__all__ = ["FrameCertifier", "FrameResult", "preview_frames", "preview_indices", "resolve_device_with_fallback"]
+__all__ = ["FrameCertifier", "FrameResult", "LogFn", "resolve_device_with_fallback"]

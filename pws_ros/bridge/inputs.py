@@ -26,7 +26,7 @@ from ..core.camera import CameraIntrinsics
 from ..core.cloud import Cloud
 from ..core.errors import require
 from ..core.registration import Extrinsic
-from . import msgconv
+from . import cloudconv, msgconv
 from .config import PwsConfig, resolve_path
 from .sync import StampMatcher
 
@@ -178,7 +178,7 @@ def convert(frame: RawFrame, config: PwsConfig, fallback: CameraIntrinsics | Non
     """The one-frame cloud and camera of a :class:`RawFrame` (PwsError for bad input)."""
     m = frame.messages
     if frame.source == "pointcloud2":
-        cloud, intr, has_color = msgconv.cloud_and_intrinsics_from_pointcloud2(m["points"], m.get("info"), fallback)
+        cloud, intr, has_color = cloudconv.cloud_and_intrinsics_from_pointcloud2(m["points"], m.get("info"), fallback)
     else:
         require(frame.source == "rgbd", f"unknown input source {frame.source!r}")
         cloud, intr = msgconv.cloud_from_rgbd(m["depth"], m["color"], m["info"], m.get("depth_info"),

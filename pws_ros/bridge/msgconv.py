@@ -11,15 +11,12 @@ Conventions
   arrays in their own unit (:func:`image_to_numpy`) or metres with NaN for invalid pixels
   (:func:`depth_to_meters`; 0, NaN, inf and negative values are invalid).
 - Row padding (``step`` larger than ``width * bytes_per_pixel``) and ``is_bigendian`` are honoured.
-- A ``PointCloud2`` needs ``x, y, z`` (float32 or float64, any offsets); colour is optional: a
-  packed ``rgb``/``rgba`` field (float32 or uint32/int32 holding ``0x00RRGGBB``) or separate
-  ``r, g, b`` uint8 fields. Points with a non-finite coordinate, or exactly at the origin (the
-  "no return" marker of several drivers), are dropped.
+- ``PointCloud2`` decoding is :mod:`pws_ros.bridge.cloudconv`.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -39,10 +36,6 @@ SUPPORTED_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "16UC1", "mono
 
 ALIGNED_DEPTH_HINT = "use an aligned depth topic such as /camera/aligned_depth_to_color/image_raw"
 
-# sensor_msgs/PointField datatypes
-POINTFIELD_DTYPES = {1: np.int8, 2: np.uint8, 3: np.int16, 4: np.uint16, 5: np.int32, 6: np.uint32, 7: np.float32, 8: np.float64}
-POINTFIELD_NAMES = {1: "INT8", 2: "UINT8", 3: "INT16", 4: "UINT16", 5: "INT32", 6: "UINT32", 7: "FLOAT32", 8: "FLOAT64"}
-
 
 # ---- helpers ------------------------------------------------------------------------------
 
@@ -56,7 +49,7 @@ def header_stamp_ns(msg: Any) -> int:
     return stamp_to_ns(msg.header.stamp)
 
 
-def _frame_id(msg: Any) -> str:
+def frame_id_of(msg: Any) -> str:
     header = getattr(msg, "header", None)
     return str(getattr(header, "frame_id", "") or "")
 
@@ -94,7 +87,7 @@ def _positive_int(value: Any, what: str) -> int:
     return out
 
 
-def _rows(buf: np.ndarray, height: int, step: int, row_bytes: int, what: str) -> np.ndarray:
+def byte_rows(buf: np.ndarray, height: int, step: int, row_bytes: int, what: str) -> np.ndarray:
     """``(height, row_bytes)`` uint8 view of a row-padded buffer (the last row's padding may be absent)."""
     require(step >= row_bytes, f"{what}: step {step} is smaller than one row of pixels ({row_bytes} bytes)")
     need = step * (height - 1) + row_bytes
@@ -131,7 +124,7 @@ def image_to_numpy(msg: Any) -> np.ndarray:
     buf = as_byte_array(msg.data, "Image data")
     if key in COLOR_ENCODINGS:
         ch = COLOR_ENCODINGS[key]
-        rows = _rows(buf, height, step, width * ch, f"{enc} Image {width}x{height}")
+        rows = byte_rows(buf, height, step, width * ch, f"{enc} Image {width}x{height}")
         img = rows.reshape(height, width, ch)
         if key == "mono8":
             return np.repeat(img, 3, axis=2)
@@ -140,13 +133,13 @@ def image_to_numpy(msg: Any) -> np.ndarray:
         return np.ascontiguousarray(img[:, :, :3])
     if key in DEPTH_ENCODINGS:
         dt = np.dtype(DEPTH_ENCODINGS[key]).newbyteorder(">" if big else "<")
-        rows = _rows(buf, height, step, width * dt.itemsize, f"{enc} Image {width}x{height}")
+        rows = byte_rows(buf, height, step, width * dt.itemsize, f"{enc} Image {width}x{height}")
         out = np.ascontiguousarray(rows).view(dt).reshape(height, width)
         return out.astype(DEPTH_ENCODINGS[key])  # native byte order, own memory
     if key in FLOAT_ENCODINGS:
         ch = FLOAT_ENCODINGS[key]
         dt = np.dtype(np.float32).newbyteorder(">" if big else "<")
-        rows = _rows(buf, height, step, width * ch * 4, f"{enc} Image {width}x{height}")
+        rows = byte_rows(buf, height, step, width * ch * 4, f"{enc} Image {width}x{height}")
         out = np.ascontiguousarray(rows).view(dt).reshape(height, width, ch) if ch > 1 else np.ascontiguousarray(rows).view(dt).reshape(height, width)
         return out.astype(np.float32)
     raise PwsError(f"unsupported image encoding {enc!r}: expected one of {', '.join(SUPPORTED_ENCODINGS)}")
@@ -199,183 +192,6 @@ def _same_intrinsics(a: CameraIntrinsics, b: CameraIntrinsics, rtol: float = 1e-
         math.isclose(getattr(a, k), getattr(b, k), rel_tol=rtol, abs_tol=1e-3) for k in ("fx", "fy", "cx", "cy"))
 
 
-# ---- point clouds -------------------------------------------------------------------------
-
-@dataclass
-class PointCloudArrays:
-    """Every point of a PointCloud2 in message order: ``xyz`` (M, 3) float64 with NaN where invalid,
-    ``rgb`` (M, 3) uint8 (or None without colour), ``valid`` (M,) bool, ``shape`` (H, W)."""
-
-    xyz: np.ndarray
-    rgb: np.ndarray | None
-    valid: np.ndarray
-    shape: tuple[int, int]
-    frame_id: str = ""
-
-    @property
-    def organized(self) -> bool:
-        return self.shape[0] > 1
-
-
-class CloudConversion(tuple):
-    """``(cloud, organized_shape)``: unpacks as a pair; also has ``has_color`` (False: grey 0.5 was
-    used), ``valid`` (mask over the message's points), ``arrays`` (:class:`PointCloudArrays`)."""
-
-    def __new__(cls, cloud: Cloud, organized_shape: tuple[int, int] | None, has_color: bool, arrays: PointCloudArrays):
-        self = super().__new__(cls, (cloud, organized_shape))
-        self.cloud = cloud
-        self.organized_shape = organized_shape
-        self.has_color = bool(has_color)
-        self.arrays = arrays
-        self.valid = arrays.valid
-        return self
-
-
-def _field_table(msg: Any) -> dict[str, tuple[int, int, int]]:
-    table: dict[str, tuple[int, int, int]] = {}
-    for f in list(getattr(msg, "fields", []) or []):
-        name = str(f.name)
-        dt, off, cnt = int(f.datatype), int(f.offset), int(getattr(f, "count", 1) or 1)
-        require(dt in POINTFIELD_DTYPES, f"PointCloud2 field {name!r} has unknown datatype {dt}")
-        require(off >= 0, f"PointCloud2 field {name!r} has a negative offset {off}")
-        table.setdefault(name, (off, dt, cnt))
-    return table
-
-
-def pointcloud2_to_arrays(msg: Any) -> PointCloudArrays:
-    """Decode a ``sensor_msgs/PointCloud2`` (any field offsets, padding, endianness, layout)."""
-    width = int(getattr(msg, "width", 0))
-    height = int(getattr(msg, "height", 0))
-    require(width >= 0 and height >= 0, f"PointCloud2 has a negative size {width}x{height}")
-    point_step = int(msg.point_step)
-    row_step = int(msg.row_step)
-    big = bool(msg.is_bigendian)
-    fields = _field_table(msg)
-    names = ", ".join(fields) or "none"
-    for axis in ("x", "y", "z"):
-        require(axis in fields, f"PointCloud2 has no {axis!r} field (fields: {names})")
-        dt = fields[axis][1]
-        require(dt in (7, 8), f"PointCloud2 field {axis!r} is {POINTFIELD_NAMES[dt]}: expected FLOAT32 or FLOAT64")
-    color_field = next((n for n in ("rgb", "rgba") if n in fields), None)
-    separate = color_field is None and all(c in fields for c in ("r", "g", "b"))
-    used = ["x", "y", "z"] + ([color_field] if color_field else []) + (["r", "g", "b"] if separate else [])
-    for name in used:
-        off, dt, _ = fields[name]
-        size = np.dtype(POINTFIELD_DTYPES[dt]).itemsize
-        require(off + size <= point_step, f"PointCloud2 field {name!r} (offset {off}, {size} bytes) does not fit in point_step {point_step}")
-    if color_field:
-        dt = fields[color_field][1]
-        require(dt in (5, 6, 7), f"PointCloud2 field {color_field!r} is {POINTFIELD_NAMES[dt]}: expected packed FLOAT32 or UINT32")
-    if separate:
-        for c in ("r", "g", "b"):
-            require(fields[c][1] == 2, f"PointCloud2 field {c!r} is {POINTFIELD_NAMES[fields[c][1]]}: expected UINT8")
-
-    count = width * height
-    buf = as_byte_array(msg.data, "PointCloud2 data")
-    if count == 0:
-        empty = np.zeros((0, 3))
-        return PointCloudArrays(empty, np.zeros((0, 3), np.uint8) if (color_field or separate) else None, np.zeros(0, bool), (height, width), _frame_id(msg))
-    require(point_step > 0, f"PointCloud2 point_step must be positive, got {point_step}")
-    row_bytes = width * point_step
-    require(row_step >= row_bytes, f"PointCloud2 row_step {row_step} is smaller than width {width} x point_step {point_step}")
-    rows = _rows(buf, height, row_step, row_bytes, f"PointCloud2 {width}x{height}")
-    pts = rows.reshape(height * width, point_step)
-
-    def column(name: str) -> np.ndarray:
-        off, dt, _ = fields[name]
-        dtype = np.dtype(POINTFIELD_DTYPES[dt]).newbyteorder(">" if big else "<")
-        raw = np.ascontiguousarray(pts[:, off: off + dtype.itemsize])
-        return raw.view(dtype).reshape(-1)
-
-    xyz = np.stack([column(a).astype(np.float64) for a in ("x", "y", "z")], axis=1)
-    valid = np.all(np.isfinite(xyz), axis=1) & np.any(xyz != 0.0, axis=1)
-    xyz[~valid] = np.nan
-    rgb = None
-    if color_field:
-        off = fields[color_field][0]
-        packed = np.ascontiguousarray(pts[:, off: off + 4]).view(np.dtype(np.uint32).newbyteorder(">" if big else "<")).reshape(-1)
-        packed = packed.astype(np.uint32)
-        rgb = np.stack([(packed >> 16) & 0xFF, (packed >> 8) & 0xFF, packed & 0xFF], axis=1).astype(np.uint8)
-    elif separate:
-        rgb = np.stack([column(c) for c in ("r", "g", "b")], axis=1).astype(np.uint8)
-    return PointCloudArrays(xyz, rgb, valid, (height, width), _frame_id(msg))
-
-
-def cloud_from_pointcloud2(msg: Any) -> CloudConversion:
-    """The coloured cloud of a ``PointCloud2`` and its organized shape ``(H, W)`` (None if ``height == 1``).
-
-    Unpacks as ``cloud, organized_shape = cloud_from_pointcloud2(msg)``; ``.has_color`` tells whether
-    the message had colour (without it every point is grey 0.5).
-    """
-    arr = pointcloud2_to_arrays(msg)
-    pts = arr.xyz[arr.valid]
-    if arr.rgb is not None:
-        colors = arr.rgb[arr.valid]
-    else:
-        colors = np.full((len(pts), 3), 0.5, dtype=np.float32)
-    cloud = Cloud(pts, colors)
-    return CloudConversion(cloud, arr.shape if arr.organized else None, arr.rgb is not None, arr)
-
-
-def intrinsics_from_organized_cloud(arrays: PointCloudArrays, *, frame_id: str | None = None,
-                                    max_rms_px: float = 0.75, min_points: int = 16) -> CameraIntrinsics:
-    """Pinhole intrinsics of an organized cloud's grid by least squares.
-
-    Point ``(row, col)`` of an organized cloud in its optical frame projects to pixel centre
-    ``col = fx X/Z + cx`` and ``row = fy Y/Z + cy``; both lines are fitted. PwsError when too few
-    points are valid or when the grid is not a pinhole image (RMS residual above ``max_rms_px``:
-    e.g. a cloud transformed out of the camera frame).
-    """
-    H, W = arrays.shape
-    require(H > 1, "intrinsics can be estimated only from an organized cloud (height > 1)")
-    idx = np.nonzero(arrays.valid)[0]
-    xyz = arrays.xyz[idx]
-    front = xyz[:, 2] > 0
-    idx, xyz = idx[front], xyz[front]
-    require(len(idx) >= min_points, f"organized cloud has only {len(idx)} valid points in front of the camera; cannot estimate intrinsics (give a CameraInfo)")
-    rows, cols = idx // W, idx % W
-    out = []
-    rms = []
-    for coord, target in ((xyz[:, 0] / xyz[:, 2], cols), (xyz[:, 1] / xyz[:, 2], rows)):
-        A = np.stack([coord, np.ones_like(coord)], axis=1)
-        require(float(np.ptp(coord)) > 0, "organized cloud spans a single image column or row; cannot estimate intrinsics (give a CameraInfo)")
-        sol, *_ = np.linalg.lstsq(A, target.astype(np.float64), rcond=None)
-        res = A @ sol - target
-        out.append(sol)
-        rms.append(float(np.sqrt(np.mean(res * res))))
-    (fx, cx), (fy, cy) = out
-    require(fx > 0 and fy > 0, f"organized cloud is not a pinhole image grid (fitted fx={fx:.4g}, fy={fy:.4g}); is it in the camera optical frame? give a CameraInfo")
-    require(max(rms) <= max_rms_px,
-            f"organized cloud is not a pinhole image grid (fit residual {max(rms):.3g} px > {max_rms_px} px); is it in the camera optical frame? give a CameraInfo")
-    return CameraIntrinsics(int(W), int(H), float(fx), float(fy), float(cx), float(cy), frame_id if frame_id is not None else arrays.frame_id)
-
-
-def cloud_and_intrinsics_from_pointcloud2(msg: Any, info_msg: Any | None = None,
-                                          fallback: CameraIntrinsics | None = None) -> tuple[Cloud, CameraIntrinsics, bool]:
-    """The cloud of a PointCloud2 and the camera to render it with: ``(cloud, intrinsics, has_color)``.
-
-    Intrinsics come from ``info_msg`` (an organized cloud must then have its size), else from the
-    organized grid (least squares), else ``fallback``; an unorganized cloud without CameraInfo or
-    fallback is refused.
-    """
-    conv = cloud_from_pointcloud2(msg)
-    cloud, shape = conv
-    frame = _frame_id(msg)
-    if info_msg is not None:
-        intr = intrinsics_from_camera_info(info_msg)
-        if shape is not None:
-            require((intr.height, intr.width) == shape,
-                    f"organized PointCloud2 {shape[1]}x{shape[0]} and CameraInfo {intr.width}x{intr.height} differ in size")
-    elif shape is not None:
-        intr = intrinsics_from_organized_cloud(conv.arrays, frame_id=frame)
-    else:
-        require(fallback is not None, "unorganized PointCloud2 (height 1) without a CameraInfo: set camera_info_topic or camera_info_file")
-        intr = fallback
-    if frame and not intr.frame_id:
-        intr = replace(intr, frame_id=frame)
-    return cloud, intr, conv.has_color
-
-
 # ---- RGB-D --------------------------------------------------------------------------------
 
 def extrinsic_from_transform(msg: Any, source: str = "") -> Extrinsic:
@@ -414,7 +230,7 @@ def registration_problem(depth_msg: Any, color_msg: Any, info_msg: Any, depth_in
         if not _same_intrinsics(dintr, intr):
             return (f"depth and colour are not registered (depth camera fx={dintr.fx:.1f} cx={dintr.cx:.1f} {dintr.width}x{dintr.height}, "
                     f"colour camera fx={intr.fx:.1f} cx={intr.cx:.1f} {intr.width}x{intr.height})")
-    dframe, cframe = _frame_id(depth_msg), _frame_id(color_msg)
+    dframe, cframe = frame_id_of(depth_msg), frame_id_of(color_msg)
     if require_same_frame and dframe and cframe and dframe != cframe:
         return f"depth frame {dframe!r} and colour frame {cframe!r} differ: depth and colour are not registered"
     return ""
@@ -447,15 +263,14 @@ def cloud_from_rgbd(depth_msg: Any, color_msg: Any, info_msg: Any, depth_info_ms
         require(dintr.shape == depth.shape,
                 f"depth CameraInfo {dintr.width}x{dintr.height} does not match the depth image {depth.shape[1]}x{depth.shape[0]}")
         depth = register_depth(depth, dintr, intr, extrinsic)
-    cframe = _frame_id(color_msg)
+    cframe = frame_id_of(color_msg)
     if cframe and not intr.frame_id:
         intr = replace(intr, frame_id=cframe)
     return _core_cloud_from_rgbd(depth, rgb, intr), intr
 
 
 __all__ = [
-    "ALIGNED_DEPTH_HINT", "CloudConversion", "PointCloudArrays", "SUPPORTED_ENCODINGS", "as_byte_array",
-    "cloud_and_intrinsics_from_pointcloud2", "cloud_from_pointcloud2", "cloud_from_rgbd", "color_to_numpy",
-    "depth_to_meters", "extrinsic_from_transform", "header_stamp_ns", "image_to_numpy", "intrinsics_from_camera_info",
-    "intrinsics_from_organized_cloud", "pointcloud2_to_arrays", "registration_problem", "stamp_to_ns", "transforms_from_tf_message",
+    "ALIGNED_DEPTH_HINT", "SUPPORTED_ENCODINGS", "as_byte_array", "byte_rows", "cloud_from_rgbd", "color_to_numpy",
+    "depth_to_meters", "extrinsic_from_transform", "frame_id_of", "header_stamp_ns", "image_to_numpy", "intrinsics_from_camera_info",
+    "registration_problem", "stamp_to_ns", "transforms_from_tf_message",
 ]

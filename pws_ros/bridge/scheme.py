@@ -38,7 +38,8 @@ from ..core.camera import CameraIntrinsics
 from ..core.errors import PwsError, require
 from ..core.jsonable import jsonable
 from ..core.motion import parse_axis
-from .msgbuild import image_from_numpy, make, make_header
+from .msgbuild import image_from_numpy
+from .msgtypes import make, make_header
 from .msgconv import header_stamp_ns, image_to_numpy
 
 PLAN_FORMAT = "pws_ros/plan-bundle/1"

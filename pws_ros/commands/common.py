@@ -5,6 +5,8 @@ import argparse
 import json
 import math
 import sys
+from collections.abc import Sequence
+from typing import Any, Callable
 
 from ..core.camera import CameraIntrinsics
 from ..core.certify import COVERAGES, CertifyConfig
@@ -15,21 +17,31 @@ from ..core.imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS
 from ..core.partition import DEFAULT_DELTA_PX, DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, PLAN_METHODS
 
 
-def positive_float(text: str) -> float:
+def add_command_group(subparsers, name: str, help: str, description: str, choices: Sequence[str]):
+    """``pws NAME`` with required sub-commands ``choices`` (``pws sim record``, ``pws train all`` ...):
+    the sub-parsers object, its choice stored in ``args.<name>_command``."""
+    p = subparsers.add_parser(name, help=help, description=description)
+    sub = p.add_subparsers(dest=f"{name}_command", metavar="{" + ",".join(choices) + "}")
+    sub.required = True
+    return sub
+
+
+def _parsed(text: str, cast: Callable[[str], Any], what: str) -> Any:
     try:
-        v = float(text)
+        return cast(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        raise argparse.ArgumentTypeError(f"not {what}: {text!r}") from None
+
+
+def positive_float(text: str) -> float:
+    v = _parsed(text, float, "a number")
     if not (math.isfinite(v) and v > 0):
         raise argparse.ArgumentTypeError(f"must be positive and finite, got {text}")
     return v
 
 
 def positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    v = _parsed(text, int, "an integer")
     if v < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
     return v

@@ -192,7 +192,8 @@ def register(subparsers) -> None:
 
 def build_config(args: argparse.Namespace):
     """The PwsConfig of the command line: --config (or config/pws.yaml) then the options."""
-    from ..bridge.config import PwsConfig, default_config_path, load_config, validate_param
+    from ..bridge.config import PwsConfig, default_config_path, load_config
+    from ..bridge.params import validate_param
 
     if args.config:
         cfg = load_config(args.config, node_name="pipeline", check=False)

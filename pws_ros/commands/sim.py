@@ -6,13 +6,13 @@ import json
 from pathlib import Path
 
 from ..core.errors import PwsError, require
+from .common import add_command_group
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("sim", help="procedural RGB-D world: record bags, export views",
-                              description="The seeded procedural world of pws_ros.sim (one object of one of 12 classes in a textured room).")
-    sub = p.add_subparsers(dest="sim_command", metavar="{record,view,classes}")
-    sub.required = True
+    sub = add_command_group(subparsers, "sim", "procedural RGB-D world: record bags, export views",
+                            "The seeded procedural world of pws_ros.sim (one object of one of 12 classes in a textured room).",
+                            ("record", "view", "classes"))
 
     r = sub.add_parser("record", help="write views as a rosbag2 bag (RGB, CameraInfo, aligned depth, organized cloud unless --no-points, ground truth)")
     r.add_argument("--out", required=True, help="bag directory to create (must not exist)")

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 from ..core.errors import PwsError, require
+from .common import add_command_group
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -17,10 +18,8 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("train", help="train the demo classifier / denoiser on the procedural world",
-                              description="Seeded, CPU-only training on views of pws_ros.sim.")
-    sub = p.add_subparsers(dest="train_command", metavar="{all,classifier,denoiser}")
-    sub.required = True
+    sub = add_command_group(subparsers, "train", "train the demo classifier / denoiser on the procedural world",
+                            "Seeded, CPU-only training on views of pws_ros.sim.", ("all", "classifier", "denoiser"))
 
     a = sub.add_parser("all", help="classifiers for sigma 0.25 and 0.5, the sigma-0.5 denoiser, classes.txt, training_report.json")
     a.add_argument("--out", required=True, help="output folder (e.g. bags/models)")
@@ -28,19 +27,15 @@ def register(subparsers) -> None:
     _common(a)
     a.set_defaults(func=run)
 
-    c = sub.add_parser("classifier", help="one classifier trained with Gaussian noise of --sigma")
-    c.add_argument("--out", required=True, help="model file to write (.pt, TorchScript + pws.json + <stem>.classes.txt)")
-    c.add_argument("--sigma", type=float, default=0.5)
-    c.add_argument("--epochs", type=int, default=None, help="default: the preset's")
-    _common(c)
-    c.set_defaults(func=run)
-
-    d = sub.add_parser("denoiser", help="a DnCNN-like denoiser for --sigma")
-    d.add_argument("--out", required=True, help="denoiser file to write (.pt, TorchScript)")
-    d.add_argument("--sigma", type=float, default=0.5)
-    d.add_argument("--epochs", type=int, default=None, help="default: the preset's")
-    _common(d)
-    d.set_defaults(func=run)
+    for name, what, out in (("classifier", "one classifier trained with Gaussian noise of --sigma",
+                             "model file to write (.pt, TorchScript + pws.json + <stem>.classes.txt)"),
+                            ("denoiser", "a DnCNN-like denoiser for --sigma", "denoiser file to write (.pt, TorchScript)")):
+        one = sub.add_parser(name, help=what)
+        one.add_argument("--out", required=True, help=out)
+        one.add_argument("--sigma", type=float, default=0.5)
+        one.add_argument("--epochs", type=int, default=None, help="default: the preset's")
+        _common(one)
+        one.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from .errors import PwsError, require
+from .errors import PwsError, read_yaml_file, require
 
 
 @dataclass(frozen=True)
@@ -95,11 +95,7 @@ class CameraIntrinsics:
     def from_yaml(cls, path: str | Path) -> "CameraIntrinsics":
         """Read a ROS camera_info YAML file as written by camera_calibration."""
         path = Path(path)
-        require(path.is_file(), f"camera file not found: {path}")
-        try:
-            data = yaml.safe_load(path.read_text())
-        except yaml.YAMLError as exc:
-            raise PwsError(f"camera file {path} is not valid YAML: {str(exc).splitlines()[0]}") from None
+        data = read_yaml_file(path, "camera file")
         return cls.from_dict(data, source=f"camera file {path}")
 
     @classmethod

@@ -12,3 +12,17 @@ def require(condition: bool, message: str) -> None:
     """Raise :class:`PwsError` with ``message`` unless ``condition`` holds."""
     if not condition:
         raise PwsError(message)
+
+
+def read_yaml_file(path, what: str = "file"):
+    """The content of a YAML file; PwsError naming ``what`` and the path when it is missing or not valid YAML."""
+    from pathlib import Path
+
+    import yaml
+
+    path = Path(path)
+    require(path.is_file(), f"{what} not found: {path}")
+    try:
+        return yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise PwsError(f"{what} {path} is not valid YAML: {str(exc).splitlines()[0]}") from None

@@ -143,6 +143,20 @@ class PosePublishers:
             pub.publish(msg)
 
 
+def stage_engine(ctx: Any, *, input_size: bool = False) -> Any:
+    """The FrameCertifier of a four-process stage that needs no classifier: what the stage reads is read
+    now (the model's input size with ``input_size``, the dense cloud of method pws), so a bad file is a
+    PwsError at start-up (exit 2)."""
+    from ..bridge.engine import FrameCertifier
+
+    engine = FrameCertifier(ctx.config, log=ctx.log, load=False)
+    if input_size:
+        engine.render_size  # noqa: B018
+    if ctx.config.method == "pws":
+        engine.dense_cloud  # noqa: B018
+    return engine
+
+
 def jump_logger(ctx: Any) -> Callable[[str], None]:
     """The ``on_time_jump`` callback of the bridge's matchers: one WARN per jump back in time."""
     return lambda text: ctx.log("warn", text)

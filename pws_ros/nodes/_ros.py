@@ -17,8 +17,9 @@ from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_policy_name_from_kind,
                        qos_profile_system_default)
 
-from ..bridge.config import SPECS, ParamSpec, PwsConfig, check_consistency, config_from_params, spec_table, validate_param
-from ..bridge.msgbuild import MESSAGE_TYPES
+from ..bridge.config import PwsConfig, check_consistency, config_from_params
+from ..bridge.params import SPECS, ParamSpec, spec_table, validate_param
+from ..bridge.msgtypes import MESSAGE_TYPES
 from ..core.errors import PwsError
 from ._common import ShutdownSafePublisher
 
@@ -36,7 +37,7 @@ except ImportError:  # pragma: no cover
 # ---- message classes ----------------------------------------------------------------------
 
 def rclpy_types() -> SimpleNamespace:
-    """The ``types`` namespace of :mod:`pws_ros.bridge.msgbuild` from the installed ROS 2 packages."""
+    """The ``types`` namespace of :mod:`pws_ros.bridge.msgtypes` from the installed ROS 2 packages."""
     import importlib
 
     ns = SimpleNamespace(flavour="rclpy")

@@ -19,7 +19,7 @@ from dataclasses import replace
 from typing import Any
 
 from ..bridge import msgbuild, outputs, scheme
-from ..bridge.sync import AssembledFrame, AxisSet, PartitionAssembler
+from ..bridge.assembly import AssembledFrame, AxisSet, PartitionAssembler
 from ..core.errors import PwsError
 from ._common import HealthPublisher, Throttle, Worker, jump_logger, start
 

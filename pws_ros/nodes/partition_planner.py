@@ -14,24 +14,19 @@ from __future__ import annotations
 import sys
 from typing import Any
 
-from ..bridge import msgbuild, msgconv, scheme
+from ..bridge import cloudconv, msgbuild, msgconv, scheme
 from ..bridge.sync import StampMatcher
-from ._common import HealthPublisher, PosePublishers, Worker, jump_logger, start
+from ._common import HealthPublisher, PosePublishers, Worker, jump_logger, stage_engine, start
 
 NODE_NAME = "partition_planner"
 
 
 class PartitionPlannerNode:
     def __init__(self, ctx: Any):
-        from ..bridge.engine import FrameCertifier
-
         self.ctx = ctx
         T = ctx.types
         cfg = ctx.config
-        self.engine = FrameCertifier(cfg, log=ctx.log, load=False)
-        self.engine.render_size  # noqa: B018 - reads the model's input size now (PwsError -> exit 2)
-        if cfg.method == "pws":
-            self.engine.dense_cloud  # noqa: B018
+        self.engine = stage_engine(ctx, input_size=True)
         self.matcher = StampMatcher(("cloud", "info"), tolerance_ns=0, queue_size=cfg.sync_queue_size, on_time_jump=jump_logger(ctx))
         self.pub_plan = ctx.publisher(T.String, "plan")
         self.pub_cloud = ctx.publisher(T.PointCloud2, "plan/cloud")
@@ -54,7 +49,7 @@ class PartitionPlannerNode:
         T = self.ctx.types
         self.engine.config = cfg = self.ctx.config
         cloud_msg, info_msg = matched["cloud"], matched["info"]
-        cloud, _ = msgconv.cloud_from_pointcloud2(cloud_msg)
+        cloud, _ = cloudconv.cloud_from_pointcloud2(cloud_msg)
         intr = msgconv.intrinsics_from_camera_info(info_msg)
         bundle = self.engine.plan_bundle(cloud, intr, matched.stamp_ns, cloud_msg.header.frame_id)
         if cfg.publish_poses:

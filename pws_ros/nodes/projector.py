@@ -15,10 +15,10 @@ import threading
 from collections import OrderedDict
 from typing import Any
 
-from ..bridge import msgbuild, msgconv, scheme
-from ..bridge.engine import preview_frames
+from ..bridge import cloudconv, msgbuild, msgconv, scheme
+from ..bridge.preview import preview_frames
 from ..core.errors import PwsError
-from ._common import HealthPublisher, Worker, start
+from ._common import HealthPublisher, Worker, stage_engine, start
 
 NODE_NAME = "projector"
 CLOUD_WAIT_S = 2.0
@@ -26,14 +26,10 @@ CLOUD_WAIT_S = 2.0
 
 class ProjectorNode:
     def __init__(self, ctx: Any):
-        from ..bridge.engine import FrameCertifier
-
         self.ctx = ctx
         T = ctx.types
         cfg = ctx.config
-        self.engine = FrameCertifier(cfg, log=ctx.log, load=False)
-        if cfg.method == "pws":
-            self.engine.dense_cloud  # noqa: B018 - load now (PwsError -> exit 2)
+        self.engine = stage_engine(ctx)
         self.clouds: OrderedDict[int, Any] = OrderedDict()
         self.max_clouds = 2 * cfg.max_pending_frames + 2
         self._cloud_cond = threading.Condition()
@@ -82,7 +78,7 @@ class ProjectorNode:
             for axis in bundle.plans:
                 self.pub_errors.publish(scheme.render_error_message(S, axis, f"no cloud with stamp {S} arrived within {CLOUD_WAIT_S:g} s", T))
             return
-        cloud, _ = msgconv.cloud_from_pointcloud2(cloud_msg)
+        cloud, _ = cloudconv.cloud_from_pointcloud2(cloud_msg)
         for axis, plan in bundle.plans.items():
             if self.worker.stopping:
                 return

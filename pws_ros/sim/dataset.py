@@ -21,7 +21,9 @@ from ..core.cloud import cloud_from_rgbd
 from ..core.errors import require
 from ..core.motion import AXES
 from ..core.render import render
-from .world import NUM_CLASSES, NUM_VIEWS, default_intrinsics, make_scene, random_pose, raycast, view_pose
+from .objects import NUM_CLASSES
+from .poses import NUM_VIEWS, random_pose, view_pose
+from .world import default_intrinsics, make_scene, raycast
 
 TRAIN_SEED_BASE = 1_000_000
 DATA_VERSION = 1

@@ -6,6 +6,10 @@ length (``t`` is returned in units of ``d``; with ``d = R_wc @ (x, y, 1)`` it is
 
 Colours are functions of the local surface position only (:class:`Texture`), so a ray caster and a
 surface sampler that hit the same surface point see the same albedo.
+
+Kept as one module on purpose (about 500 lines): the six primitives implement one interface
+(intersect, sample uniformly by area, inside test) with shared ray helpers (quadric roots, disc
+caps, nearest positive hit); each class is short, and splitting them would scatter one algorithm.
 """
 from __future__ import annotations
 
@@ -97,6 +101,36 @@ def _quadratic_roots(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> tuple[np.nd
     return t0, t1
 
 
+def _along(o: np.ndarray, d: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The points ``o + t d`` (``o`` where ``t`` is not finite: callers mask those rays)."""
+    return o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+
+
+def _cylindrical(rho, th: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Points ``(rho cos th, rho sin th, z)`` (N, 3) around the local z axis."""
+    return np.stack([rho * np.cos(th), rho * np.sin(th), z], axis=1)
+
+
+def _side_hits(o: np.ndarray, d: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray, z_lo: float,
+               z_hi: float) -> list[np.ndarray]:
+    """Both roots of a quadric side ``a t^2 + 2 b t + c = 0``, kept where the hit's local z lies in
+    ``[z_lo, z_hi]`` (inf elsewhere)."""
+    hits = []
+    for s in _quadratic_roots(a, b, c):
+        z = _along(o, d, s)[:, 2]
+        hits.append(np.where(np.isfinite(s) & (z >= z_lo) & (z <= z_hi), s, np.inf))
+    return hits
+
+
+def _disc_hit(o: np.ndarray, d: np.ndarray, z0: float, r: float) -> np.ndarray:
+    """``t`` where rays meet the disc of radius ``r`` around the local z axis at height ``z0`` (inf: miss)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (z0 - o[:, 2]) / d[:, 2]
+    p = _along(o, d, t)
+    x, y = p[:, 0], p[:, 1]
+    return np.where(np.isfinite(t) & (x * x + y * y <= r * r), t, np.inf)
+
+
 @dataclass
 class Primitive:
     """Base class: subclasses implement the ``_local`` methods."""
@@ -167,7 +201,7 @@ class Sphere(Primitive):
         c = np.einsum("ij,ij->i", o, o) - self.radius**2
         t0, t1 = _quadratic_roots(a, b, c)
         t, _ = _smallest_positive(t0, t1)
-        p = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+        p = _along(o, d, t)
         return t, p / self.radius
 
     def _sample_local(self, n, rng):
@@ -205,7 +239,7 @@ class Box(Primitive):
         tf = tmax.min(axis=1)
         hit = tf >= np.maximum(tn, EPS)
         t = np.where(hit, np.where(tn > EPS, tn, tf), np.inf)
-        p = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+        p = _along(o, d, t)
         q = np.abs(p) / h
         k = np.argmax(q, axis=1)
         n = np.zeros_like(p)
@@ -245,20 +279,9 @@ class Cylinder(Primitive):
         a = d[:, 0] ** 2 + d[:, 1] ** 2
         b = o[:, 0] * d[:, 0] + o[:, 1] * d[:, 1]
         c = o[:, 0] ** 2 + o[:, 1] ** 2 - r * r
-        s0, s1 = _quadratic_roots(a, b, c)
-        side = []
-        for s in (s0, s1):
-            z = o[:, 2] + np.where(np.isfinite(s), s, 0.0) * d[:, 2]
-            side.append(np.where(np.isfinite(s) & (np.abs(z) <= h), s, np.inf))
-        caps = []
-        with np.errstate(divide="ignore", invalid="ignore"):
-            for zc in (-h, h):
-                tc = (zc - o[:, 2]) / d[:, 2]
-                x = o[:, 0] + np.where(np.isfinite(tc), tc, 0.0) * d[:, 0]
-                y = o[:, 1] + np.where(np.isfinite(tc), tc, 0.0) * d[:, 1]
-                caps.append(np.where(np.isfinite(tc) & (x * x + y * y <= r * r), tc, np.inf))
-        t, which = _smallest_positive(side[0], side[1], caps[0], caps[1])
-        p = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+        side = _side_hits(o, d, a, b, c, -h, h)
+        t, which = _smallest_positive(side[0], side[1], _disc_hit(o, d, -h, r), _disc_hit(o, d, h, r))
+        p = _along(o, d, t)
         n = np.zeros_like(p)
         n[:, 0] = p[:, 0] / r
         n[:, 1] = p[:, 1] / r
@@ -274,8 +297,8 @@ class Cylinder(Primitive):
         th = rng.uniform(0, 2 * math.pi, size=n)
         rr = np.where(part == 0, r, r * np.sqrt(rng.uniform(0, 1, size=n)))
         z = np.where(part == 0, rng.uniform(-h, h, size=n), np.where(part == 1, -h, h))
-        p = np.stack([rr * np.cos(th), rr * np.sin(th), z], axis=1)
-        nrm = np.stack([np.cos(th), np.sin(th), np.zeros(n)], axis=1)
+        p = _cylindrical(rr, th, z)
+        nrm = _cylindrical(1.0, th, np.zeros(n))
         nrm[part == 1] = (0.0, 0.0, -1.0)
         nrm[part == 2] = (0.0, 0.0, 1.0)
         return p, nrm
@@ -306,18 +329,9 @@ class Cone(Primitive):
         a = d[:, 0] ** 2 + d[:, 1] ** 2 - k2 * d[:, 2] ** 2
         b = o[:, 0] * d[:, 0] + o[:, 1] * d[:, 1] + k2 * w * d[:, 2]
         c = o[:, 0] ** 2 + o[:, 1] ** 2 - k2 * w * w
-        s0, s1 = _quadratic_roots(a, b, c)
-        side = []
-        for s in (s0, s1):
-            z = o[:, 2] + np.where(np.isfinite(s), s, 0.0) * d[:, 2]
-            side.append(np.where(np.isfinite(s) & (z >= 0) & (z <= H), s, np.inf))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tc = -o[:, 2] / d[:, 2]
-        x = o[:, 0] + np.where(np.isfinite(tc), tc, 0.0) * d[:, 0]
-        y = o[:, 1] + np.where(np.isfinite(tc), tc, 0.0) * d[:, 1]
-        cap = np.where(np.isfinite(tc) & (x * x + y * y <= R * R), tc, np.inf)
-        t, which = _smallest_positive(side[0], side[1], cap)
-        p = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+        side = _side_hits(o, d, a, b, c, 0.0, H)
+        t, which = _smallest_positive(side[0], side[1], _disc_hit(o, d, 0.0, R))
+        p = _along(o, d, t)
         rr = np.maximum(np.hypot(p[:, 0], p[:, 1]), 1e-12)
         n = np.stack([p[:, 0] / rr, p[:, 1] / rr, np.full(len(p), R / H)], axis=1)
         n /= np.linalg.norm(n, axis=1, keepdims=True)
@@ -332,8 +346,8 @@ class Cone(Primitive):
         s = np.sqrt(rng.uniform(0, 1, size=n))  # radius fraction, uniform by area on both parts
         rr = R * s
         z = np.where(is_cap, 0.0, H * (1 - s))
-        p = np.stack([rr * np.cos(th), rr * np.sin(th), z], axis=1)
-        nrm = np.stack([np.cos(th), np.sin(th), np.full(n, R / H)], axis=1)
+        p = _cylindrical(rr, th, z)
+        nrm = _cylindrical(1.0, th, np.full(n, R / H))
         nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
         nrm[is_cap] = (0.0, 0.0, -1.0)
         return p, nrm
@@ -430,8 +444,8 @@ class Torus(Primitive):
             keep = rng.uniform(0, 1, size=m) < w
             th, ph = th[keep], ph[keep]
             ring = self.major + self.minor * np.cos(ph)
-            p = np.stack([ring * np.cos(th), ring * np.sin(th), self.minor * np.sin(ph)], axis=1)
-            nn = np.stack([np.cos(ph) * np.cos(th), np.cos(ph) * np.sin(th), np.sin(ph)], axis=1)
+            p = _cylindrical(ring, th, self.minor * np.sin(ph))
+            nn = _cylindrical(np.cos(ph), th, np.sin(ph))
             out_p.append(p)
             out_n.append(nn)
             got += len(p)

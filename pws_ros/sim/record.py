@@ -24,7 +24,9 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics
 from ..core.errors import PwsError, require
-from .world import CLASS_NAMES, FRAME_ID, NUM_VIEWS, View, render_view
+from .objects import CLASS_NAMES
+from .poses import NUM_VIEWS
+from .world import FRAME_ID, View, render_view
 
 TOPIC_COLOR = "/camera/color/image_raw"
 TOPIC_INFO = "/camera/color/camera_info"

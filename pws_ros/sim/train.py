@@ -28,7 +28,7 @@ import torch.nn.functional as F
 from ..core.errors import require
 from ..core.model import META_FILE, META_FORMAT, save_model
 from .dataset import default_cache_dir, heldout_set, training_set
-from .world import CLASS_NAMES, NUM_CLASSES
+from .objects import CLASS_NAMES, NUM_CLASSES
 
 
 # ------------------------------------------------------------------------------------------------

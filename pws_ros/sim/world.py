@@ -1,9 +1,10 @@
-"""A seeded procedural indoor world: one object of one of :data:`CLASS_NAMES` in a textured room.
+"""A seeded procedural indoor world: one object of one of :data:`~pws_ros.sim.objects.CLASS_NAMES`
+(:mod:`pws_ros.sim.objects`) in a textured room.
 
 * :func:`make_scene` builds a scene from an integer seed (the class is ``seed % NUM_CLASSES``
   unless given); everything else (size, yaw, colours, lighting, room) comes from the seed.
-* :func:`view_pose` places the camera on rings around the object (``NUM_VIEWS`` canonical views,
-  like MetaRoom's test views); :func:`random_pose` draws a continuous pose (for training).
+* :mod:`pws_ros.sim.poses` places the camera on rings around the object (``view_pose``) or at a
+  continuous random pose (``random_pose``, for training).
 * :func:`raycast` is the "real camera": exact RGB-D at pixel centres.
 * :func:`dense_cloud` samples every surface that can be seen within a margin of the view frustum
   (occluded parts included) densely enough that each pixel footprint gets several samples; colours
@@ -22,27 +23,10 @@ import numpy as np
 from ..core.camera import CameraIntrinsics
 from ..core.cloud import Cloud, cloud_from_rgbd
 from ..core.errors import PwsError, require
-from .geometry import Box, Cone, Cylinder, Primitive, Rect, Sphere, Texture, Torus, rot_x, rot_y, rot_z
+from .geometry import Primitive, Rect, Texture, rot_x, rot_z
+from .objects import CLASS_NAMES, NUM_CLASSES, at, build_object
+from .poses import MAX_DISTANCE, MIN_DISTANCE, NUM_VIEWS, RING_DISTANCE_FACTORS, Pose, view_pose
 
-CLASS_NAMES: tuple[str, ...] = (
-    "crate",
-    "barrel",
-    "beach_ball",
-    "traffic_cone",
-    "ring",
-    "chair",
-    "table",
-    "lamp",
-    "snowman",
-    "mushroom",
-    "dumbbell",
-    "block_tower",
-)
-NUM_CLASSES = len(CLASS_NAMES)
-NUM_VIEWS = 24  # 3 rings x 8 azimuths
-RING_ELEVATIONS_DEG = (12.0, 24.0, 36.0)
-RING_DISTANCE_FACTORS = (1.0, 1.12, 1.25)
-MIN_DISTANCE, MAX_DISTANCE = 0.6, 2.5
 FRAME_ID = "camera_color_optical_frame"
 
 # A 1280x720 camera (RealSense-like); the default 160x90 view is this camera scaled by 1/8.
@@ -59,111 +43,6 @@ def default_intrinsics(width: int = DEFAULT_WIDTH, height: int = DEFAULT_HEIGHT)
     s = int(width) / BASE_CAMERA.width
     return CameraIntrinsics(int(width), int(height), BASE_CAMERA.fx * s, BASE_CAMERA.fy * s,
                             (BASE_CAMERA.cx + 0.5) * s - 0.5, int(height) / 2 - 0.5, FRAME_ID)
-
-
-def class_index(name: str) -> int:
-    require(name in CLASS_NAMES, f"unknown class {name!r}: expected one of {', '.join(CLASS_NAMES)}")
-    return CLASS_NAMES.index(name)
-
-
-# ------------------------------------------------------------------------------------------------
-# object builders: local frame z up, resting on z = 0, centred on the z axis
-# ------------------------------------------------------------------------------------------------
-def _T(kind="solid", colors=((0.5, 0.5, 0.5),), **kw) -> Texture:
-    return Texture(kind=kind, colors=tuple(tuple(float(x) for x in c) for c in colors), **kw)
-
-
-def _at(prim: Primitive, x=0.0, y=0.0, z=0.0, R=None) -> Primitive:
-    prim.R = np.eye(3) if R is None else np.asarray(R, dtype=np.float64)
-    prim.c = np.array([x, y, z], dtype=np.float64)
-    return prim
-
-
-def _build_object(label: int, s: float, col) -> list[Primitive]:
-    """Primitives of class ``label`` at scale ``s``; ``col(rgb)`` jitters a colour."""
-    name = CLASS_NAMES[label]
-    if name == "crate":
-        h = 0.3 * s
-        return [_at(Box(texture=_T("stripes", [col((0.62, 0.40, 0.18)), col((0.48, 0.29, 0.11))], period=0.07 * s, axis=(1, 0, 0), grain=0.08), half=(h, h, h)), z=h)]
-    if name == "barrel":
-        r, hh = 0.25 * s, 0.36 * s
-        return [_at(Cylinder(texture=_T("stripes", [col((0.85, 0.1, 0.08))] * 3 + [col((0.2, 0.2, 0.22))], period=0.06 * s, axis=(0, 0, 1)), radius=r, half_height=hh), z=hh)]
-    if name == "beach_ball":
-        r = 0.36 * s
-        tex = _T("segments", [col((0.1, 0.25, 0.9)), col((0.95, 0.95, 0.95)), col((0.95, 0.85, 0.1))], count=6)
-        return [_at(Sphere(texture=tex, radius=r), z=r)]
-    if name == "traffic_cone":
-        H, R = 0.75 * s, 0.24 * s
-        cone = Cone(texture=_T("stripes", [col((1.0, 0.45, 0.0)), col((1.0, 0.45, 0.0)), col((0.97, 0.97, 0.97))], period=0.08 * s, axis=(0, 0, 1), offset=0.5), radius=R, height=H)
-        base = Box(texture=_T("solid", [col((0.1, 0.1, 0.1))]), half=(0.28 * s, 0.28 * s, 0.02 * s))
-        return [_at(cone, z=0.04 * s), _at(base, z=0.02 * s)]
-    if name == "ring":
-        Rm, rm = 0.3 * s, 0.09 * s
-        torus = Torus(texture=_T("solid", [col((0.95, 0.75, 0.1))], grain=0.1), major=Rm, minor=rm)
-        stand = Box(texture=_T("solid", [col((0.25, 0.15, 0.35))]), half=(0.18 * s, 0.12 * s, 0.05 * s))
-        return [_at(torus, z=Rm + rm + 0.06 * s, R=rot_x(math.pi / 2)), _at(stand, z=0.05 * s)]
-    if name == "chair":
-        green = _T("solid", [col((0.1, 0.65, 0.25))], grain=0.06)
-        legs = _T("solid", [col((0.2, 0.2, 0.2))])
-        seat_z = 0.45 * s
-        prims: list[Primitive] = [
-            _at(Box(texture=green, half=(0.25 * s, 0.25 * s, 0.03 * s)), z=seat_z),
-            _at(Box(texture=green, half=(0.25 * s, 0.03 * s, 0.3 * s)), y=-0.22 * s, z=seat_z + 0.33 * s),
-        ]
-        for sx in (-1, 1):
-            for sy in (-1, 1):
-                prims.append(_at(Cylinder(texture=legs, radius=0.025 * s, half_height=0.21 * s), x=sx * 0.21 * s, y=sy * 0.21 * s, z=0.21 * s))
-        return prims
-    if name == "table":
-        top = _T("checker", [col((0.95, 0.95, 0.95)), col((0.1, 0.1, 0.1))], period=0.1 * s)
-        legs = _T("solid", [col((0.55, 0.1, 0.55))])
-        prims = [_at(Box(texture=top, half=(0.45 * s, 0.32 * s, 0.03 * s)), z=0.68 * s)]
-        for sx in (-1, 1):
-            for sy in (-1, 1):
-                prims.append(_at(Cylinder(texture=legs, radius=0.035 * s, half_height=0.33 * s), x=sx * 0.38 * s, y=sy * 0.25 * s, z=0.33 * s))
-        return prims
-    if name == "lamp":
-        metal = _T("solid", [col((0.3, 0.35, 0.55))])
-        shade = _T("stripes", [col((1.0, 0.95, 0.55)), col((0.95, 0.85, 0.35))], period=0.05 * s, axis=(0, 0, 1))
-        return [
-            _at(Cylinder(texture=metal, radius=0.17 * s, half_height=0.025 * s), z=0.025 * s),
-            _at(Cylinder(texture=metal, radius=0.025 * s, half_height=0.42 * s), z=0.45 * s),
-            _at(Cone(texture=shade, radius=0.3 * s, height=0.38 * s), z=0.72 * s),
-        ]
-    if name == "snowman":
-        white = _T("solid", [col((0.96, 0.96, 0.97))])
-        buttons = _T("dots", [col((0.96, 0.96, 0.97)), col((0.05, 0.05, 0.05))], period=0.09 * s, radius=0.022 * s)
-        return [
-            _at(Sphere(texture=white, radius=0.26 * s), z=0.26 * s),
-            _at(Sphere(texture=buttons, radius=0.19 * s), z=0.64 * s),
-            _at(Sphere(texture=white, radius=0.13 * s), z=0.92 * s),
-            _at(Cone(texture=_T("solid", [col((1.0, 0.5, 0.05))]), radius=0.03 * s, height=0.14 * s), x=0.11 * s, z=0.93 * s, R=rot_y(math.pi / 2)),
-            _at(Cylinder(texture=_T("solid", [col((0.08, 0.08, 0.1))]), radius=0.09 * s, half_height=0.07 * s), z=1.08 * s),
-        ]
-    if name == "mushroom":
-        cap = _T("dots", [col((0.85, 0.08, 0.1)), col((0.97, 0.97, 0.9))], period=0.12 * s, radius=0.035 * s)
-        stem = _T("solid", [col((0.93, 0.88, 0.72))])
-        return [
-            _at(Cylinder(texture=stem, radius=0.09 * s, half_height=0.22 * s), z=0.22 * s),
-            _at(Cone(texture=cap, radius=0.4 * s, height=0.25 * s), z=0.4 * s),
-        ]
-    if name == "dumbbell":
-        bell = _T("stripes", [col((0.05, 0.55, 0.6)), col((0.03, 0.35, 0.4))], period=0.05 * s, axis=(1, 0, 0))
-        bar = _T("solid", [col((0.78, 0.78, 0.8))])
-        r = 0.2 * s
-        return [
-            _at(Sphere(texture=bell, radius=r), x=-0.38 * s, z=r),
-            _at(Sphere(texture=bell, radius=r), x=0.38 * s, z=r),
-            _at(Cylinder(texture=bar, radius=0.045 * s, half_height=0.4 * s), z=r, R=rot_y(math.pi / 2)),
-        ]
-    if name == "block_tower":
-        cols = [col((0.85, 0.2, 0.75)), col((0.2, 0.8, 0.9)), col((0.7, 0.92, 0.15))]
-        prims, z = [], 0.0
-        for k, half in enumerate((0.24 * s, 0.18 * s, 0.13 * s)):
-            prims.append(_at(Box(texture=_T("solid", [cols[k]], grain=0.05), half=(half, half, half)), z=z + half, R=rot_z(0.45 * k)))
-            z += 2 * half
-        return prims
-    raise PwsError(f"unknown class index {label}")  # pragma: no cover
 
 
 # ------------------------------------------------------------------------------------------------
@@ -222,7 +101,7 @@ def make_scene(seed: int, label: int | None = None) -> Scene:
         return tuple(np.clip(c, 0.0, 1.0))
 
     scale = rng.uniform(0.85, 1.2)
-    obj_local = _build_object(label, scale, col)
+    obj_local = build_object(label, scale, col)
     yaw = rng.uniform(0, 2 * math.pi)
     offset = np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), 0.0])
     object_prims = [p.placed(rot_z(yaw), offset) for p in obj_local]
@@ -243,14 +122,14 @@ def make_scene(seed: int, label: int | None = None) -> Scene:
     wall_tex = Texture(kind="stripes", colors=(wall_col,) * 7 + (tuple(0.8 * np.asarray(wall_col)),), period=0.4, axis=(0.0, 1.0, 0.0), grain=0.04)
     ceil_tex = Texture(kind="solid", colors=((0.92, 0.92, 0.9),))
     room: list[Primitive] = [
-        _at(Rect(texture=floor_tex, half_u=hx, half_v=hy), 0.0, 0.0, 0.0),
-        _at(Rect(texture=ceil_tex, half_u=hx, half_v=hy), 0.0, 0.0, hz, R=rot_x(math.pi)),
+        at(Rect(texture=floor_tex, half_u=hx, half_v=hy), 0.0, 0.0, 0.0),
+        at(Rect(texture=ceil_tex, half_u=hx, half_v=hy), 0.0, 0.0, hz, R=rot_x(math.pi)),
     ]
     # wall local frame: x along the wall, y up (texture stripes along local y = height), z inward
     for ang, dist, half_u in ((0.0, hy, hx), (math.pi / 2, hx, hy), (math.pi, hy, hx), (-math.pi / 2, hx, hy)):
         Rw = rot_z(ang) @ rot_x(-math.pi / 2)  # local x along the wall, local y down, local z inward
         centre = rot_z(ang) @ np.array([0.0, -dist, hz / 2])
-        room.append(_at(Rect(texture=wall_tex, half_u=half_u, half_v=hz / 2), *centre, R=Rw))
+        room.append(at(Rect(texture=wall_tex, half_u=half_u, half_v=hz / 2), *centre, R=Rw))
 
     el = math.radians(rng.uniform(35, 75))
     az = rng.uniform(0, 2 * math.pi)
@@ -266,70 +145,6 @@ def make_scene(seed: int, label: int | None = None) -> Scene:
     return Scene(seed=seed, label=label, class_name=CLASS_NAMES[label], object_prims=object_prims, room_prims=room,
                  light_dir=light, ambient=ambient, diffuse=diffuse, gain=gain, target=target, bound_radius=bound,
                  view_distance=dist, azimuth0=float(rng.uniform(0, 2 * math.pi)), room_half=(hx, hy, hz))
-
-
-# ------------------------------------------------------------------------------------------------
-# camera poses
-# ------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Pose:
-    """Camera pose in the world: ``R`` (world from optical frame, columns x right, y down, z
-    forward) and centre ``C``. A world point ``P`` is at ``R.T @ (P - C)`` in the optical frame."""
-
-    R: np.ndarray
-    C: np.ndarray
-
-    def to_camera(self, p: np.ndarray) -> np.ndarray:
-        return (p - self.C) @ self.R
-
-    def moved(self, R_rel: np.ndarray, t_rel: np.ndarray) -> "Pose":
-        """The pose of a camera moved by ``(R_rel, t_rel)`` in its own optical frame."""
-        return Pose(self.R @ R_rel, self.C + self.R @ np.asarray(t_rel, dtype=np.float64))
-
-
-def look_at(C: np.ndarray, target: np.ndarray, roll: float = 0.0) -> Pose:
-    C = np.asarray(C, dtype=np.float64)
-    f = np.asarray(target, dtype=np.float64) - C
-    f /= np.linalg.norm(f)
-    up = np.array([0.0, 0.0, 1.0])
-    x = np.cross(f, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(f, x)
-    R = np.stack([x, y, f], axis=1)
-    if roll:
-        R = R @ rot_z(roll)
-    return Pose(R, C)
-
-
-def orbit_pose(scene: Scene, azimuth: float, elevation: float, distance: float, roll: float = 0.0,
-               target_offset=(0.0, 0.0, 0.0)) -> Pose:
-    t = scene.target + np.asarray(target_offset, dtype=np.float64)
-    C = t + distance * np.array([math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation)])
-    return look_at(C, t, roll)
-
-
-def view_pose(scene: Scene, view_index: int) -> Pose:
-    """Canonical view ``view_index`` in ``[0, NUM_VIEWS)``: ring ``view_index // 8`` (elevation
-    12/24/36 degrees, distance growing with the ring), azimuth step 45 degrees."""
-    try:
-        view_index = int(view_index)
-    except (TypeError, ValueError):
-        raise PwsError(f"view index must be an integer, got {view_index!r}") from None
-    require(0 <= view_index < NUM_VIEWS, f"view index must be in [0, {NUM_VIEWS}), got {view_index}")
-    ring, k = divmod(view_index, 8)
-    dist = float(np.clip(scene.view_distance * RING_DISTANCE_FACTORS[ring], MIN_DISTANCE, MAX_DISTANCE))
-    return orbit_pose(scene, scene.azimuth0 + k * math.pi / 4, math.radians(RING_ELEVATIONS_DEG[ring]), dist)
-
-
-def random_pose(scene: Scene, rng: np.random.Generator, jitter: float = 1.0) -> Pose:
-    """A continuous random pose around the object (training views): any azimuth, elevation 8-40
-    degrees, distance 0.9-1.35 x the ring distance, small roll and look-at offsets."""
-    az = rng.uniform(0, 2 * math.pi)
-    el = math.radians(rng.uniform(8.0, 40.0))
-    dist = float(np.clip(scene.view_distance * rng.uniform(0.9, 1.35), MIN_DISTANCE, MAX_DISTANCE))
-    roll = math.radians(rng.normal(0, 2.5 * jitter))
-    off = rng.normal(0, 0.06 * jitter, size=3) * scene.bound_radius
-    return orbit_pose(scene, az, el, dist, roll, off)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -1,0 +1,252 @@
+"""The parameter table of the node suite: ONE table (:data:`PARAMS`) with names, defaults,
+descriptions, ranges or choices, the read-only flag and the nodes that read each parameter, and the
+validation of a value against it (:func:`validate_param`).
+
+The nodes declare their ROS parameters from :data:`PARAMS` (description, FloatingPointRange /
+IntegerRange, read-only flag) and validate every change with :func:`validate_param`; the validated
+values live in :class:`pws_ros.bridge.config.PwsConfig` (built from this table), and ``docs/ros2.md``
+and ``config/pws.yaml`` are generated from it (:mod:`pws_ros.bridge.paramdoc`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+from ..core.errors import PwsError, require
+from ..core.motion import AXES, PAPER_RADIUS, UNITS
+
+from ..core.certify import COVERAGES, METHODS  # the certification core owns these lists
+from ..core.imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS
+from ..core.partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX
+
+INPUT_MODES = ("auto", "pointcloud2", "rgbd")
+QOS_PROFILES = ("sensor_data", "reliable", "best_effort", "system_default")
+INFO_SYNC = ("latest", "stamp")
+DEMO_MODEL = "bags/models/classifier_sigma0.50.pt"
+NODES = ("cloud_listener", "partition_planner", "projector", "certifier", "pipeline")
+_ALL = NODES
+_PLAN = ("partition_planner", "projector", "certifier", "pipeline")
+_CERT = ("certifier", "pipeline")
+_IN = ("cloud_listener", "pipeline")
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One parameter: ``name`` (dotted), ``default`` (its type is the parameter's type),
+    ``description``, numeric ``range`` (lo, hi) inclusive or ``choices``, ``read_only`` (fixed after
+    start: changing it would need reloading a model or re-subscribing), ``nodes`` that use it."""
+
+    name: str
+    default: Any
+    description: str
+    range: tuple[float, float] | None = None
+    choices: tuple[str, ...] | None = None
+    read_only: bool = False
+    nodes: tuple[str, ...] = _ALL
+    unit: str = ""
+
+    @property
+    def kind(self) -> str:
+        d = self.default
+        if isinstance(d, bool):
+            return "bool"
+        if isinstance(d, int):
+            return "int"
+        if isinstance(d, float):
+            return "float"
+        if isinstance(d, str):
+            return "str"
+        if isinstance(d, (list, tuple)):
+            return "str_list" if all(isinstance(v, str) for v in d) else ("int_list" if all(isinstance(v, int) and not isinstance(v, bool) for v in d) else "float_list")
+        raise TypeError(f"unsupported default for {self.name}: {d!r}")  # pragma: no cover
+
+    @property
+    def attr(self) -> str:
+        """The :class:`PwsConfig` attribute name (dots become underscores)."""
+        return self.name.replace(".", "_")
+
+
+def _radius_spec(axis: str) -> ParamSpec:
+    hi = 1.0 if UNITS[axis] == "m" else math.pi / 2
+    return ParamSpec(f"radius.{axis}", float(PAPER_RADIUS[axis]),
+                     f"requested certification radius b for axis {axis} ({UNITS[axis]}); the interval is [-b, b]",
+                     range=(1e-9, hi), nodes=_PLAN, unit=UNITS[axis])
+
+
+PARAMS: tuple[ParamSpec, ...] = (
+    # -- what to certify --
+    ParamSpec("axes", ["tz", "ry"], "motion axes to certify for each frame (any of tx, ty, tz, rx, ry, rz), one DiagnosticStatus each",
+              choices=AXES, nodes=_PLAN),
+    *(_radius_spec(a) for a in AXES),
+    ParamSpec("method", "pws_of", "partitioning method: pws (needs dense_cloud_path), pws_l, pws_of (one-frame cloud), or the cms baseline",
+              choices=METHODS, nodes=_PLAN),
+    ParamSpec("imaging", "surfel", "imaging model: surfel (each point is the patch its depth pixel saw, rendered at the camera's "
+              "resolution on a centred crop and block-averaged to the model's input; no sampling holes) or paper (one point "
+              "paints one pixel at the model's size, the paper's model)", choices=IMAGING_KINDS, nodes=_PLAN),
+    ParamSpec("border", -1, "surfel imaging: output pixels masked (set to background) along the left/right and top/bottom "
+              "edges in every frame and in the classifier's input; -1 = computed from the radii (what can enter from "
+              "beyond the recorded image)", range=(-1, 4096), nodes=_PLAN, unit="px"),
+    ParamSpec("render_factor", DEFAULT_RENDER_FACTOR, "surfel imaging: frames are rendered at this many times the model's "
+              "input size, then block-averaged to it; below the camera's resolution its pixels are binned into one surfel "
+              "per rendered pixel (2: a 640x480 camera and a 160x90 model render at 320x180, about 4x faster than "
+              "0 = the camera's full resolution, with about the same radii)", range=(0, 64), nodes=_PLAN),
+    ParamSpec("step_px", float(DEFAULT_STEP_PX), "surfel imaging: the plan's step moves no point more than this many rendered "
+              "pixels (finer = tighter bounds, more frames)", range=(1e-3, 100.0), nodes=_PLAN, unit="px"),
+    ParamSpec("coverage", "anchors", "coverage rule: anchors (p_A at a few anchor frames only; with surfel imaging they are "
+              "placed from the distance bounds, at most num_anchors), pairwise (p_A at every partition, per segment), paper "
+              "(max M < min R); ignored by cms",
+              choices=COVERAGES, nodes=_CERT),
+    ParamSpec("delta", 0.0, "PwS-OF delta-convexity constant in pixels; 0 = the core's default", range=(0.0, 100.0), nodes=_PLAN, unit="px"),
+    ParamSpec("max_partitions", DEFAULT_FRAME_BUDGET, "most partitions (frames) per axis: a plan needing more is made coarser (fewer frames, "
+              "looser bounds, maybe a smaller certified radius), never refused", range=(3, 1_000_000), nodes=_PLAN),
+    ParamSpec("max_memory_mb", 2048.0, "memory ceiling of one axis' certificate: the per-segment bounds and frames "
+              "take at most half of it (the adaptive grid stays coarser to fit; a larger plan is an ERROR), the "
+              "renderer streams within the rest", range=(64.0, 1e7), nodes=_PLAN, unit="MiB"),
+    ParamSpec("min_partitions", 0, "refine each plan to at least this many partitions (still sound; tightens the bounds where the method "
+              "plans only a few frames, e.g. sub-pixel motions); 0 = as planned", range=(0, 1_000_000), nodes=_PLAN),
+    ParamSpec("dense_cloud_path", "", "prior dense cloud (.npz with points, colors in the camera optical frame) for method pws; empty otherwise",
+              read_only=True, nodes=_PLAN),
+    ParamSpec("background", 0.0, "pixel value where no point is drawn (invalid depth, disocclusions, the masked border)", range=(0.0, 1.0), nodes=_PLAN),
+    ParamSpec("render_width", 0, "paper imaging: rendered frame width; 0 = the model's declared input size (else the camera's)", range=(0, 8192), read_only=True, nodes=_PLAN, unit="px"),
+    ParamSpec("render_height", 0, "paper imaging: rendered frame height; 0 = the model's declared input size (else the camera's)", range=(0, 8192), read_only=True, nodes=_PLAN, unit="px"),
+    # -- smoothing and statistics --
+    ParamSpec("model_path", DEMO_MODEL, "TorchScript classifier (relative paths: current directory, then the package share directory)",
+              read_only=True, nodes=_PLAN),
+    ParamSpec("classes_path", "", "class-names file (one per line); empty = beside the model or in its metadata", read_only=True, nodes=_CERT),
+    ParamSpec("denoiser_path", "", "optional TorchScript denoiser applied to noisy images before the classifier", read_only=True, nodes=_CERT),
+    ParamSpec("device", "cpu", "torch device: cpu or cuda:N (falls back to cpu with a WARN when CUDA is missing)", read_only=True, nodes=_PLAN),
+    ParamSpec("sigma", 0.5, "pixel noise standard deviation of the smoothed classifier (images in [0, 1])", range=(1e-6, 10.0), nodes=_CERT),
+    ParamSpec("n0", 64, "noise samples to select the top class (at the original pose)", range=(1, 10_000_000), nodes=_CERT),
+    ParamSpec("n", 256, "noise samples per bound to estimate p_A", range=(1, 100_000_000), nodes=_CERT),
+    ParamSpec("alpha", 0.01, "risk of a frame's certificate: the probability that any statement about the frame (all its axes "
+              "together) is wrong; split evenly over the axes, then over every bound each uses (Bonferroni)", range=(1e-12, 0.5), nodes=_CERT),
+    ParamSpec("seed", 0, "random seed; each frame and axis draws from its own stream derived from (seed, stamp, axis): "
+              "deterministic for equal inputs, independent across frames and axes", range=(0, 2**31 - 1), nodes=_CERT),
+    ParamSpec("batch_size", 256, "images per classifier call", range=(1, 1_000_000), nodes=_CERT),
+    ParamSpec("num_anchors", 24, "anchor frames for coverage=anchors (surfel imaging: the most anchors, i.e. a budget of "
+              "n0 + num_anchors * n classifier calls per axis; a frame needing more gets a smaller radius)", range=(1, 100_000), nodes=_CERT),
+    ParamSpec("audit_every", 0, "self-audit every k-th frame: re-render poses inside every segment of each certified axis "
+              "(audit_poses per segment) and check every bound the certificate used; a violation turns that axis to "
+              "ERROR; 0 = off", range=(0, 1_000_000), nodes=_CERT),
+    ParamSpec("audit_poses", 8, "poses re-rendered per segment by the self-audit (ends and their float neighbours included)",
+              range=(2, 100_000), nodes=_CERT),
+    ParamSpec("cms_sigma", 0.0, "motion-space sigma of the cms baseline; 0 = the per-axis default", range=(0.0, 10.0), nodes=_CERT),
+    # -- inputs --
+    ParamSpec("input_mode", "auto", "input: pointcloud2, rgbd (depth + colour + CameraInfo), or auto (the first that arrives)",
+              choices=INPUT_MODES, read_only=True, nodes=_IN),
+    ParamSpec("points_topic", "/camera/depth/color/points", "sensor_msgs/PointCloud2 input (organized or not; xyz + optional packed rgb)", read_only=True, nodes=_IN),
+    ParamSpec("depth_topic", "/camera/aligned_depth_to_color/image_raw", "depth Image registered to the colour camera (16UC1 mm or 32FC1 m)", read_only=True, nodes=_IN),
+    ParamSpec("color_topic", "/camera/color/image_raw", "colour Image (rgb8, bgr8, rgba8, bgra8, mono8)", read_only=True, nodes=_IN),
+    ParamSpec("camera_info_topic", "/camera/color/camera_info", "CameraInfo of the colour camera (also used with an organized or unorganized PointCloud2)",
+              read_only=True, nodes=_IN),
+    ParamSpec("depth_camera_info_topic", "auto", "CameraInfo of the depth stream: depth whose intrinsics differ from the colour camera's "
+              "is refused (not registered); auto = the camera_info beside depth_topic (e.g. /camera/aligned_depth_to_color/camera_info), "
+              "empty = no such check", read_only=True, nodes=_IN),
+    ParamSpec("camera_info_file", "", "camera_calibration YAML used when no CameraInfo arrives (unorganized clouds)", read_only=True, nodes=_IN),
+    ParamSpec("camera_info_sync", "latest", "CameraInfo pairing: latest (last one received) or stamp (matched like the images)",
+              choices=INFO_SYNC, read_only=True, nodes=_IN),
+    ParamSpec("sync_tolerance_s", 0.02, "largest stamp difference between depth, colour (and CameraInfo) of one frame", range=(0.0, 10.0), nodes=_IN, unit="s"),
+    ParamSpec("sync_queue_size", 10, "messages buffered per input stream for stamp matching", range=(1, 1000), read_only=True, nodes=_IN),
+    ParamSpec("require_same_frame", True, "refuse depth and colour with different non-empty frame ids (not registered)", nodes=_IN),
+    ParamSpec("min_period_s", 0.0, "skip input frames closer than this to the last accepted one (0 = take every frame the worker can)",
+              range=(0.0, 3600.0), nodes=_IN, unit="s"),
+    # -- QoS --
+    ParamSpec("input_qos", "sensor_data", "QoS of camera inputs: sensor_data (best effort, matches every driver), reliable, best_effort, system_default",
+              choices=QOS_PROFILES, read_only=True, nodes=_ALL),
+    ParamSpec("input_qos_depth", 5, "history depth of input subscriptions", range=(1, 10000), read_only=True, nodes=_ALL),
+    ParamSpec("output_qos", "reliable", "QoS of results (certification, plans, clouds)", choices=QOS_PROFILES, read_only=True, nodes=_ALL),
+    ParamSpec("output_qos_depth", 10, "history depth of result publishers", range=(1, 10000), read_only=True, nodes=_ALL),
+    ParamSpec("frames_qos_depth", 4096, "history depth (reliable) of rendered/frames in the four-process mode; must hold one burst",
+              range=(1, 1_000_000), read_only=True, nodes=("projector", "certifier")),
+    # -- outputs --
+    ParamSpec("publish_cloud", True, "publish the one-frame cloud on 'cloud' (PointCloud2 xyz + rgb, source header)", nodes=_IN),
+    ParamSpec("publish_poses", True, "publish each plan's camera poses on 'plan/poses/<axis>' (PoseArray)", nodes=_PLAN),
+    ParamSpec("publish_markers", True, "publish 'certification/markers' (MarkerArray text for RViz/Foxglove)", nodes=_CERT),
+    ParamSpec("publish_preview", True, "publish a decimated 'rendered/preview' Image (rgb8) for humans", nodes=("projector", "pipeline")),
+    ParamSpec("preview_every", 25, "publish every k-th rendered frame of a plan on rendered/preview (the alpha = 0 frame always)",
+              range=(1, 1_000_000), nodes=("projector", "pipeline")),
+    ParamSpec("health_period_s", 1.0, "period of the /diagnostics health status", range=(0.05, 3600.0), read_only=True, nodes=_ALL, unit="s"),
+    ParamSpec("assembly_timeout_s", 30.0, "four-process mode: time to wait for every frame of a plan before declaring it incomplete",
+              range=(0.01, 86400.0), nodes=("certifier",), unit="s"),
+    ParamSpec("max_pending_frames", 2, "four-process mode: input frames held while their rendered frames arrive",
+              range=(1, 64), read_only=True, nodes=("certifier", "projector")),
+)
+
+SPECS: dict[str, ParamSpec] = {p.name: p for p in PARAMS}
+
+
+def spec_table(nodes: Sequence[str] | None = None) -> list[ParamSpec]:
+    """The specs a node declares (all when ``nodes`` is None)."""
+    if nodes is None:
+        return list(PARAMS)
+    return [p for p in PARAMS if any(n in p.nodes for n in nodes)]
+
+
+# ---- validation ---------------------------------------------------------------------------
+
+def _num(value: Any, spec: ParamSpec, integer: bool) -> float | int:
+    if isinstance(value, bool):
+        raise PwsError(f"parameter {spec.name} must be {'an integer' if integer else 'a number'}, got {value!r}")
+    if integer:
+        if isinstance(value, float) and value.is_integer():
+            value = int(value)
+        require(isinstance(value, int), f"parameter {spec.name} must be an integer, got {value!r}")
+        out: float | int = int(value)
+    else:
+        require(isinstance(value, (int, float)), f"parameter {spec.name} must be a number, got {value!r}")
+        out = float(value)
+        require(math.isfinite(out), f"parameter {spec.name} must be finite, got {value!r}")
+    if spec.range is not None:
+        lo, hi = spec.range
+        require(lo <= out <= hi, f"parameter {spec.name}={out!r} is out of range [{lo:g}, {hi:g}]")
+    return out
+
+
+def validate_param(name: str, value: Any) -> Any:
+    """The validated (normalised) value of parameter ``name``; PwsError naming what is wrong."""
+    spec = SPECS.get(name)
+    if spec is None:
+        raise PwsError(f"unknown parameter {name!r}" + _suggest(name))
+    kind = spec.kind
+    if kind == "bool":
+        require(isinstance(value, bool), f"parameter {name} must be true or false, got {value!r}")
+        return value
+    if kind == "int":
+        return _num(value, spec, integer=True)
+    if kind == "float":
+        return _num(value, spec, integer=False)
+    if kind == "str":
+        require(isinstance(value, str), f"parameter {name} must be a string, got {value!r}")
+        value = value.strip()
+        if spec.choices is not None:
+            require(value in spec.choices, f"parameter {name}={value!r} is not one of {', '.join(spec.choices)}")
+        return value
+    if kind == "str_list":
+        if isinstance(value, str):
+            value = [v for v in value.replace(",", " ").split() if v]
+        require(isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value),
+                f"parameter {name} must be a list of strings, got {value!r}")
+        items = [v.strip().lower() if spec.choices == AXES else v.strip() for v in value]
+        if spec.choices is not None:
+            bad = [v for v in items if v not in spec.choices]
+            require(not bad, f"parameter {name}: {', '.join(map(repr, bad))} not in {', '.join(spec.choices)}")
+        require(len(items) > 0, f"parameter {name} must not be empty")
+        require(len(set(items)) == len(items), f"parameter {name} lists an entry twice: {items}")
+        return tuple(items)
+    raise PwsError(f"parameter {name} has an unsupported type")  # pragma: no cover
+
+
+def validate_params(params: dict[str, Any]) -> dict[str, Any]:
+    return {k: validate_param(k, v) for k, v in params.items()}
+
+
+def _suggest(name: str) -> str:
+    import difflib
+
+    close = difflib.get_close_matches(name, list(SPECS), n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+__all__ = ["COVERAGES", "DEMO_MODEL", "INFO_SYNC", "INPUT_MODES", "METHODS", "NODES", "PARAMS", "ParamSpec", "QOS_PROFILES",
+           "SPECS", "spec_table", "validate_param", "validate_params"]
