@@ -204,17 +204,18 @@ def test_switches_leave_out_what_is_off():
 def test_replay_writes_every_frame_in_the_published_order(tmp_path, monkeypatch, make_model_file):
     """End to end through ``Replay.process``: the result bag receives each frame's messages in the order above."""
     from pws_ros import replay as rp
+    from pws_ros.replay import run as replay_run
     from pws_ros.sim.record import record
 
     bag = record(tmp_path / "sim", frames=2, width=32, height=24, views_per_scene=1)
     written = []
 
-    class RecordingWriter(rp.BagWriter):
+    class RecordingWriter(replay_run.BagWriter):
         def write(self, topic, msg, log_time_ns, msgtype=None):
             written.append((log_time_ns, topic))
             return super().write(topic, msg, log_time_ns, msgtype)
 
-    monkeypatch.setattr(rp, "BagWriter", RecordingWriter)
+    monkeypatch.setattr(replay_run, "BagWriter", RecordingWriter)
     cfg = config_from_params({"model_path": str(make_model_file(input_size=(24, 32))), "axes": ["tx", "tz"], "radius.tx": 0.002,
                               "radius.tz": 0.002, "n0": 16, "n": 32, "preview_every": 8})
     res = rp.replay(rp.ReplayOptions(bag=bag, config=cfg, out=tmp_path / "out", write_cloud=True, preview=True, quiet=True))

@@ -165,14 +165,18 @@ class LatestSlot(Generic[T]):
 
     def put(self, item: T) -> bool:
         """Store ``item``; True if an older untaken item was dropped to make room."""
+        return self.replace(item)[0]
+
+    def replace(self, item: T) -> tuple[bool, T | None]:
+        """Store ``item``; (whether an older untaken item was dropped, that item)."""
         with self._cond:
-            dropped = self._full
+            dropped, old = self._full, (self._item if self._full else None)
             if dropped:
                 self.dropped += 1
             self._item, self._full = item, True
             self.accepted += 1
             self._cond.notify_all()
-            return dropped
+            return dropped, old
 
     def take(self, timeout: float | None = None) -> T | None:
         with self._cond:
