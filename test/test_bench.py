@@ -81,13 +81,19 @@ def test_json_records_machine_seeds_and_versions(smoke_run):
     assert set(res["models"]) == {"0.25", "0.50", "0.75", "denoiser"}
     assert res["models"]["0.75"] is None and len(res["models"]["0.50"]["sha256_16"]) == 16
     assert res["total_seconds"] > 0 and set(res["stage_seconds"]) == {
-        "throughput", "plans", "certificates", "sigma", "partitions", "empirical", "denoiser", "scaling"}
+        "throughput", "plans", "certificates", "shipped", "sigma", "partitions", "empirical", "denoiser", "scaling"}
 
 
 def test_every_table_is_filled(smoke_run):
     _, res = smoke_run
     s, summ = res["settings"], res["summary"]
     ncert = s["cert_scenes"]
+    # the shipped defaults: a 640x480 camera with surfel imaging on every certified scene and axis, next to CMS
+    assert len(res["shipped"]) == ncert * len(s["cert_axes"])
+    for r in res["shipped"]:
+        assert r["camera"] == [640, 480] and r.get("imaging") == "surfel" and r["anchors"] >= 1, r
+        assert r["classifier_calls"] <= 64 + 24 * 256   # the shipped budget: n0 + num_anchors * n
+    assert [r["axis"] for r in summ["shipped"]] == s["cert_axes"]
     # frames: every planned axis has N for every method
     assert [r["axis"] for r in summ["frames"]] == s["plan_axes"]
     for row in summ["frames"]:

@@ -11,6 +11,7 @@ from ..core.motion import PAPER_RADIUS, UNITS
 from .verdicts import why_not_full_radius
 from .settings import PAPER_CMS_SAMPLES, PRESETS
 from .tables import sigma_of, acc_value, curve_radii, radius_curve
+from .shipped import render_shipped
 from .text import METHOD_NAMES, fmt, fmt_n, frac, mebibytes, radius_str, table
 
 
@@ -185,6 +186,7 @@ def render_markdown(res: dict, summ: dict, cl: list[dict], est: dict, plots: lis
             L.append(f"- ({c['id']}) {c['why']}")
     L.append("")
     # table 1
+    L.extend(render_shipped(summ.get("shipped") or []))
     L.append("## Frames needed per certificate (Table 1 analogue)\n")
     L.append(f"Planned number of partitions N (median [min–max] over scenes, planning only). PwS: entire dense cloud, exact "
              f"consistent intervals; PwS-L / PwS-OF: one-frame cloud. Ratio: median N / {PAPER_CMS_SAMPLES:,} (the CMS sample count "

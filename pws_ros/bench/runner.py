@@ -37,6 +37,7 @@ from ..core.render import Renderer, resolve_device
 from ..core.result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_NOT_CERTIFIED
 from ..core.smoothing import SmoothedClassifier
 from .settings import BenchSettings, scene_ids
+from .shipped import stage_shipped
 
 PLAN_CAP = 10_000_000          # larger plans are reported as "> PLAN_CAP" (the grid alone would not fit)
 RUN_QUANTILES = (0.0, 1e-4, 1e-3, 1e-2, 0.5)
@@ -291,6 +292,7 @@ class Bench:
         self.results["delta_px"] = DEFAULT_DELTA_PX if s.delta_px is None else s.delta_px
         self.results["scenes"] = [{"scene": a, "view": b} for a, b in scene_ids(s.plan_scenes)]
         for name, fn in (("throughput", self.stage_throughput), ("plans", self.stage_plans), ("certificates", self.stage_certificates),
+                         ("shipped", lambda: stage_shipped(self)),
                          ("sigma", self.stage_sigma), ("partitions", self.stage_partitions), ("empirical", self.stage_empirical),
                          ("denoiser", self.stage_denoiser), ("scaling", self.stage_scaling)):
             t = time.perf_counter()

@@ -12,6 +12,7 @@ import numpy as np
 from .. import metrics
 from ..core.motion import PAPER_RADIUS
 from .settings import PAPER_CMS_SAMPLES, PRESETS
+from .shipped import summarize_shipped
 
 CURVE_STEPS = 8  # radius curves at b * k / 8
 
@@ -94,6 +95,7 @@ def summarize(res: dict) -> dict[str, Any]:
                       "lemma1_holds": sum(1 for r in recs if r.get("lemma1_holds")), "cloud_points": median(r["cloud_points"] for r in recs) if recs else None}
         frames.append(row)
     out["frames"] = frames
+    out["shipped"] = summarize_shipped(res)
     cert = res["certificates"]
     axes = s["cert_axes"]
     acc = []
