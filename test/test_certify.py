@@ -22,7 +22,8 @@ from scipy.stats import binom, norm
 from conftest import LinearNet, MeanThresholdNet
 from pws_ros.core.bounds import render_plan
 from pws_ros.core.camera import CameraIntrinsics
-from pws_ros.core.certify import COVERAGES, CertifyConfig, anchor_indices, certify, certify_rendered
+from pws_ros.core.certify import COVERAGES, CertifyConfig, certify, certify_rendered
+from pws_ros.core.coverage import anchor_indices
 from pws_ros.core.cloud import Cloud, cloud_from_rgbd
 from pws_ros.core.errors import PwsError
 from pws_ros.core.model import load_model, save_model

@@ -26,7 +26,8 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from ..core.certify import CertifyConfig, certify, certify_rendered, cohen_radii, paper_reach
+from ..core.certify import CertifyConfig, certify, certify_rendered
+from ..core.coverage import PaperRule, cohen_radii
 from ..core.bounds import render_plan
 from ..core.cloud import Cloud
 from ..core.errors import PwsError, require
@@ -193,7 +194,7 @@ def paper_rule(p_a_lower, pair_bound_sq, alphas, sigma: float) -> tuple[str, boo
     require(len(p) == len(alphas), "paper rule needs one p_A bound per partition")
     R = cohen_radii(p, sigma)
     centre = int(np.searchsorted(alphas, 0.0))
-    j = paper_reach(pair_bound_sq, R, centre)
+    j, _ = PaperRule().reach(R, centre, pair_bound_sq=pair_bound_sq)
     if not R[centre] > 0:
         return STATUS_ABSTAIN, False, 0.0
     certified = j == centre

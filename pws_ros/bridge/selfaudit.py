@@ -15,7 +15,7 @@ def audit_certificate(cert: Certificate, cloud: Cloud, imaging: Any, plan: Any, 
     used (its anchors, or ``num_anchors`` evenly placed ones for coverage anchors). Recorded in
     ``cert.bounds['audit']``; a violation makes the axis ERROR, an audit that cannot run says so."""
     from ..core.audit import audit_bounds
-    from ..core.certify import anchor_indices
+    from ..core.coverage import anchor_indices
     from ..core.imaging import make_renderer, segment_bounds
 
     try:

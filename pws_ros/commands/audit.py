@@ -4,7 +4,8 @@ from __future__ import annotations
 import math
 
 from ..core.audit import DEFAULT_POSES_PER_SEGMENT, audit_bounds
-from ..core.certify import CertifyConfig, anchor_indices
+from ..core.certify import CertifyConfig
+from ..core.coverage import anchor_indices
 from ..core.imaging import make_imaging, make_renderer, plan_for, segment_bounds
 from ..core.motion import UNITS
 from .common import add_imaging_size_arg, add_plan_args, add_scene_args, emit, load_scene, positive_int

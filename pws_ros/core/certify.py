@@ -9,7 +9,8 @@ The method on one screen (Theorems 1-3 of the paper with the per-segment bounds 
 4. Estimation: ``n`` fresh noisy samples per partition frame (or per anchor) count ``c_A``;
    ``p_A^(i)`` is the one-sided Clopper-Pearson lower bound at level ``alpha / m`` (Bonferroni over the
    ``m`` bounds used) and ``R_i = sigma Phi^-1(p_A^(i))`` (0 if ``p_A^(i) <= 1/2``).
-5. Coverage of segment ``i`` (any frame of it is within the Cohen radius of some estimated frame):
+5. Coverage of segment ``i`` (any frame of it is within the Cohen radius of some estimated frame; the
+   rules are objects of :mod:`.coverage`):
    * ``paper``: ``max_i sqrt(B_i / 2) < min_i R_i`` (Theorem 1 with ``B_i`` in place of ``|x_i - x_{i+1}|^2``);
    * ``pairwise``: ``B_i < R_i^2 + R_{i+1}^2``;
    * ``anchors``: some anchor ``a`` has ``D_i(x_a) < R_a`` (``p_A`` estimated at ``K`` anchors only).
@@ -33,10 +34,11 @@ from .cloud import Cloud
 from .errors import require
 from .imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, segment_bounds, segment_hulls
 from .model import LoadedModel
+from .coverage import AnchorsRule, cohen_radii, covered_radius, coverage_rule
 from .motion import UNITS, parse_axis
 from .partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, Plan, check_radius, validate_grid
 from .result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_NOT_CERTIFIED, Certificate
-from .smoothing import SmoothedClassifier, bonferroni, clopper_pearson_lower, cohen_radius
+from .smoothing import SmoothedClassifier, bonferroni, clopper_pearson_lower
 
 METHODS = ("pws", "pws_l", "pws_of", "cms")
 COVERAGES = ("paper", "pairwise", "anchors")
@@ -83,53 +85,6 @@ class CertifyConfig:
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
-
-
-def anchor_indices(num_partitions: int, num_anchors: int) -> np.ndarray:
-    """``K`` anchors evenly spread over the grid, always including the centre (``alpha = 0``)."""
-    m = num_partitions // 2
-    k = max(1, min(int(num_anchors), num_partitions))
-    idx = np.unique(np.round(np.linspace(0, num_partitions - 1, k)).astype(np.int64))
-    return np.unique(np.concatenate([idx, [m]]))
-
-
-def symmetric_reach(covered: np.ndarray, centre: int) -> int:
-    """Largest ``j`` such that segments ``centre-j .. centre+j-1`` are all covered."""
-    nseg = len(covered)
-    j = 0
-    while j < centre and centre + j < nseg and covered[centre - j - 1] and covered[centre + j]:
-        j += 1
-    return j
-
-
-def covered_radius(covered: np.ndarray, alphas: np.ndarray, centre: int) -> float:
-    """Largest ``r`` such that every segment inside ``[-r, r]`` is covered (the grid need not be symmetric):
-    the smaller of the covered runs from ``alpha = 0`` to the right and to the left."""
-    i = centre
-    while i < len(covered) and covered[i]:
-        i += 1
-    right = float(alphas[i])
-    i = centre - 1
-    while i >= 0 and covered[i]:
-        i -= 1
-    left = -float(alphas[i + 1])
-    return min(right, left)
-
-
-def cohen_radii(p_a_lower, sigma: float) -> np.ndarray:
-    """Cohen radii ``R_i`` of the p_A lower bounds (0 where p_A <= 1/2; finite where p_A = 1)."""
-    R = np.asarray(cohen_radius(np.asarray(p_a_lower, dtype=np.float64), sigma), dtype=np.float64).reshape(-1)
-    return np.where(np.isfinite(R), R, np.finfo(np.float64).max)
-
-
-def paper_reach(pair_bound_sq: np.ndarray, R: np.ndarray, centre: int) -> int:
-    """Largest ``j`` with ``max sqrt(B / 2) < min R`` over segments ``centre-j .. centre+j-1`` and partitions
-    ``centre-j .. centre+j`` (the paper's rule on each symmetric sub-interval)."""
-    Mseg = np.sqrt(np.asarray(pair_bound_sq, dtype=np.float64) / 2)
-    j = 0
-    while j < centre and Mseg[centre - j - 1 : centre + j + 1].max() < R[centre - j - 1 : centre + j + 2].min():
-        j += 1
-    return j
 
 
 def segment_bytes(imaging: Imaging) -> int:
@@ -250,8 +205,9 @@ def _certify_stream(renderer, plan: Plan, values: SegmentValues, model: LoadedMo
     centre = int(np.searchsorted(plan.alphas, 0.0))
     require(plan.alphas[centre] == 0.0, "plan grid lacks alpha = 0")
     sc = SmoothedClassifier(model, config.sigma, batch_size=config.batch_size, seed=config.seed, denoiser=denoiser)
-    anchors = config.coverage == "anchors"
-    est_idx = anchor_indices(N, config.num_anchors) if anchors else np.arange(N)
+    rule = coverage_rule(config.coverage, config.num_anchors)
+    anchors = rule.uses_anchor_distances
+    est_idx = rule.estimation_indices(N)
     m_bounds = len(est_idx)
     a_level = bonferroni(config.alpha, m_bounds)
     total_work = config.n0 + m_bounds * config.n
@@ -319,17 +275,7 @@ def _certify_stream(renderer, plan: Plan, values: SegmentValues, model: LoadedMo
                               "M": float(np.sqrt(B.max() / 2)) if len(B) else 0.0,
                               "R_min": float(R.min()), "R_centre": float(R[est_pos[centre]]) if centre in est_pos else float("nan"),
                               "lemma1_holds": plan.details.get("lemma1_holds")}
-    if config.coverage == "paper":
-        j = paper_reach(B, R, centre)
-        covered_count = 2 * j
-    elif config.coverage == "pairwise":
-        covered = B < R[:-1] ** 2 + R[1:] ** 2
-        j = symmetric_reach(covered, centre)
-        covered_count = int(covered.sum())
-    else:
-        covered = np.any(D2 < (R[:, None] ** 2), axis=0)
-        j = symmetric_reach(covered, centre)
-        covered_count = int(covered.sum())
+    j, covered_count = rule.reach(R, centre, pair_bound_sq=B, anchor_dist_sq=D2)
     bounds["segments_covered"] = covered_count
     t_stats += time.perf_counter() - t1
     timings = dict(timings)
@@ -424,7 +370,7 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, model: LoadedModel, 
     p_lower = np.asarray(clopper_pearson_lower(k_est, int(config.n), bonferroni(config.alpha, K)), dtype=np.float64).reshape(-1)
     R = cohen_radii(p_lower, config.sigma)
     D2 = np.stack([row(int(a)) for a in est_idx])
-    covered = np.any(D2 < (R[:, None] ** 2), axis=0)
+    covered = AnchorsRule(K).covered(R, anchor_dist_sq=D2)   # the placed anchors: a fixed set (module doc of .anchors)
     reach = covered_radius(covered, plan.alphas, centre)
     steps = np.sqrt(np.sum((frames[1:].astype(np.float64) - frames[:-1]) ** 2, axis=(1, 2, 3)))
     half = (plan.alphas[:-1] >= -reach) & (plan.alphas[1:] <= reach)

@@ -1,0 +1,144 @@
+"""Coverage rules: which segments of the plan the p_A bounds cover, hence the certified radius.
+
+Every rule reads the same two things: the Cohen radii ``R`` of the p_A lower bounds it estimated (one
+per *estimation frame*, all at the Bonferroni level ``alpha / K`` with ``K`` = the number of those frames)
+and sound per-segment distance bounds of the imaging model (:class:`.imaging.HullValues`,
+:class:`.bounds.SegmentValues`). Segment ``i`` joins grid points ``i`` and ``i + 1``; the centre
+``alphas[centre]`` is 0. A rule returns which segments it covers; the radius is the symmetric run of
+covered segments around 0 (:func:`symmetric_reach` on a grid symmetric about 0, :func:`covered_radius`
+on any grid).
+
+* :class:`PaperRule` (the paper's Theorem 1, with sound bounds): p_A at every frame (``K = N``);
+  ``[-b_j, b_j]`` is covered when ``max sqrt(B_i / 2) < min R`` over its segments and frames, ``B_i``
+  bounding ``|x - x_i|^2 + |x - x_{i+1}|^2`` for every frame ``x`` of segment ``i``.
+* :class:`PairwiseRule`: p_A at every frame (``K = N``); segment ``i`` is covered when
+  ``B_i < R_i^2 + R_{i+1}^2`` (every ``x`` of it is then within ``R_i`` of ``x_i`` or within ``R_{i+1}``
+  of ``x_{i+1}``).
+* :class:`AnchorsRule`: p_A at ``K`` anchor frames only; segment ``i`` is covered by any anchor ``a``
+  with ``D_i(x_a) < R_a`` (every ``x`` of it within ``R_a`` of ``x_a``). The anchors are evenly spread
+  (:func:`anchor_indices`) or, with surfel imaging, placed from the distance bounds before the
+  estimation samples are drawn (:mod:`.anchors`); either way the set is fixed before those samples,
+  so the ``K`` bounds fail together with probability at most ``alpha``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .smoothing import cohen_radius
+
+
+def cohen_radii(p_a_lower, sigma: float) -> np.ndarray:
+    """Cohen radii ``R_i`` of the p_A lower bounds (0 where p_A <= 1/2; finite where p_A = 1)."""
+    R = np.asarray(cohen_radius(np.asarray(p_a_lower, dtype=np.float64), sigma), dtype=np.float64).reshape(-1)
+    return np.where(np.isfinite(R), R, np.finfo(np.float64).max)
+
+
+def anchor_indices(num_partitions: int, num_anchors: int) -> np.ndarray:
+    """``K`` anchors evenly spread over the grid, always including the centre (``alpha = 0``)."""
+    m = num_partitions // 2
+    k = max(1, min(int(num_anchors), num_partitions))
+    idx = np.unique(np.round(np.linspace(0, num_partitions - 1, k)).astype(np.int64))
+    return np.unique(np.concatenate([idx, [m]]))
+
+
+def symmetric_reach(covered: np.ndarray, centre: int) -> int:
+    """Largest ``j`` such that segments ``centre-j .. centre+j-1`` are all covered."""
+    nseg = len(covered)
+    j = 0
+    while j < centre and centre + j < nseg and covered[centre - j - 1] and covered[centre + j]:
+        j += 1
+    return j
+
+
+def covered_radius(covered: np.ndarray, alphas: np.ndarray, centre: int) -> float:
+    """Largest ``r`` such that every segment inside ``[-r, r]`` is covered (the grid need not be symmetric):
+    the smaller of the covered runs from ``alpha = 0`` to the right and to the left."""
+    i = centre
+    while i < len(covered) and covered[i]:
+        i += 1
+    right = float(alphas[i])
+    i = centre - 1
+    while i >= 0 and covered[i]:
+        i -= 1
+    left = -float(alphas[i + 1])
+    return min(right, left)
+
+
+def paper_reach(pair_bound_sq: np.ndarray, R: np.ndarray, centre: int) -> int:
+    """Largest ``j`` with ``max sqrt(B / 2) < min R`` over segments ``centre-j .. centre+j-1`` and partitions
+    ``centre-j .. centre+j`` (the paper's rule on each symmetric sub-interval)."""
+    Mseg = np.sqrt(np.asarray(pair_bound_sq, dtype=np.float64) / 2)
+    j = 0
+    while j < centre and Mseg[centre - j - 1 : centre + j + 1].max() < R[centre - j - 1 : centre + j + 2].min():
+        j += 1
+    return j
+
+
+@dataclass(frozen=True)
+class PaperRule:
+    """The paper's rule (module doc). ``covered_count`` = 2 j segments."""
+
+    name = "paper"
+    uses_anchor_distances = False
+
+    def estimation_indices(self, num_partitions: int) -> np.ndarray:
+        return np.arange(num_partitions)
+
+    def reach(self, R: np.ndarray, centre: int, *, pair_bound_sq: np.ndarray, anchor_dist_sq=None) -> tuple[int, int]:
+        """(``j``: segments ``centre-j .. centre+j-1`` covered, segments covered)."""
+        j = paper_reach(pair_bound_sq, R, centre)
+        return j, 2 * j
+
+
+@dataclass(frozen=True)
+class PairwiseRule:
+    """Segment ``i`` covered when ``B_i < R_i^2 + R_{i+1}^2`` (module doc)."""
+
+    name = "pairwise"
+    uses_anchor_distances = False
+
+    def estimation_indices(self, num_partitions: int) -> np.ndarray:
+        return np.arange(num_partitions)
+
+    def covered(self, R: np.ndarray, *, pair_bound_sq: np.ndarray, anchor_dist_sq=None) -> np.ndarray:
+        return np.asarray(pair_bound_sq) < R[:-1] ** 2 + R[1:] ** 2
+
+    def reach(self, R: np.ndarray, centre: int, *, pair_bound_sq: np.ndarray, anchor_dist_sq=None) -> tuple[int, int]:
+        covered = self.covered(R, pair_bound_sq=pair_bound_sq)
+        return symmetric_reach(covered, centre), int(covered.sum())
+
+
+@dataclass(frozen=True)
+class AnchorsRule:
+    """Segment ``i`` covered by an anchor ``a`` with ``D_i(x_a) < R_a`` (``anchor_dist_sq``: (K, S)); the
+    ``num_anchors`` evenly spread anchors of :func:`anchor_indices`, or any fixed set (:mod:`.anchors`)."""
+
+    num_anchors: int = 9
+    name = "anchors"
+    uses_anchor_distances = True
+
+    def estimation_indices(self, num_partitions: int) -> np.ndarray:
+        return anchor_indices(num_partitions, self.num_anchors)
+
+    def covered(self, R: np.ndarray, *, anchor_dist_sq: np.ndarray, pair_bound_sq=None) -> np.ndarray:
+        return np.any(np.asarray(anchor_dist_sq) < (np.asarray(R)[:, None] ** 2), axis=0)
+
+    def reach(self, R: np.ndarray, centre: int, *, anchor_dist_sq: np.ndarray, pair_bound_sq=None) -> tuple[int, int]:
+        covered = self.covered(R, anchor_dist_sq=anchor_dist_sq)
+        return symmetric_reach(covered, centre), int(covered.sum())
+
+
+def coverage_rule(name: str, num_anchors: int = 9):
+    """The rule object of a ``coverage`` setting (paper, pairwise, anchors)."""
+    rules = {"paper": PaperRule(), "pairwise": PairwiseRule(), "anchors": AnchorsRule(int(num_anchors))}
+    if name not in rules:
+        from .errors import PwsError
+
+        raise PwsError(f"unknown coverage rule {name!r}: expected one of {', '.join(rules)}")
+    return rules[name]
+
+
+__all__ = ["AnchorsRule", "PairwiseRule", "PaperRule", "anchor_indices", "cohen_radii", "covered_radius", "coverage_rule",
+           "paper_reach", "symmetric_reach"]
