@@ -9,7 +9,9 @@ from typing import Callable
 from .verdicts import claims
 from .report import write_report
 from .tables import summarize
-from .runner import Bench, PeakMemory, capped_plan, grid_plan, paper_rule
+from .grids import capped_plan, grid_plan, paper_rule
+from .machine import PeakMemory
+from .runner import Bench
 from .settings import FULL, PRESETS, QUICK, SMOKE, BenchSettings, scene_ids
 
 
