@@ -378,7 +378,8 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, model: LoadedModel, 
         "anchors": [float(plan.alphas[a]) for a in est_idx], "target_radius": float(target),
         "R_min": float(R.min()), "R_centre": float(R[0]), "segments_covered": int(covered.sum()),
         "max_anchor_dist": float(np.sqrt(D2.min(axis=0).max())) if D2.size else 0.0,
-        # a lower bound on the anchors any rule needs: the rendered path over the covered range / (2 R)
+        # the rendered path over the covered range / (2 R): the anchors a straight path would need (a
+        # wiggling path can need fewer: a ball of radius R holds more than 2 R of it)
         "path_length": float(steps.sum()), "path_anchor_bound": float(steps[half].sum() / (2 * max(float(R.max()), 1e-12))),
     }
     t_stats += time.perf_counter() - t1
