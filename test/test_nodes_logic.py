@@ -18,6 +18,7 @@ from pws_ros.core.camera import CameraIntrinsics
 
 T = msgbuild.rosbags_types()
 TS = T.typestore
+T.TFMessage = TS.types["tf2_msgs/msg/TFMessage"]  # as pws_ros.nodes._ros.rclpy_types gives it
 T0 = 1_700_000_000_000_000_000
 CAM = CameraIntrinsics(32, 24, 30.0, 30.0, 15.5, 11.5, "cam")
 
@@ -401,5 +402,61 @@ def test_unregistered_depth_is_refused_by_default(bus, model_path):
         play(bus, [T0], lambda: bus.published["/certification"])
         parsed = msgbuild.parse_certification(bus.published["/certification"][0])
         assert all(v["level"] == 2 and "not registered" in v["message"] for v in parsed.values())
+    finally:
+        node.close()
+
+
+def test_unregistered_depth_is_registered_with_the_extrinsic_from_tf_static(bus):
+    """A RealSense-style camera without align_depth: depth in its own optical frame, related to the
+    colour frame only through /tf_static (camera_link -> each optical frame). Refused until the
+    transform arrives; then registered, and the cloud is the brute-force one written here."""
+    from pws_ros.nodes.cloud_listener import CloudListenerNode
+
+    ctx = Context(bus, "cloud_listener", **params("unused.pt", depth_camera_info_topic="/cam/depth_info"))
+    node = CloudListenerNode(ctx)
+    fx, cx, cy, z_mm, shift_m = CAM.fx, CAM.cx, CAM.cy, 3000, 0.2   # a 0.2 m baseline at 3 m: 2 px
+    mm = np.full((24, 32), z_mm, np.uint16)
+    mm[5:8, 10:14] = 0                                             # a hole stays a hole
+    rgb = np.random.default_rng(5).integers(0, 256, (24, 32, 3), dtype=np.uint8)
+
+    def publish_frame(stamp_ns):
+        dh, ch = msgbuild.make_header(T, stamp_ns, "depth_optical"), msgbuild.make_header(T, stamp_ns, "color_optical")
+        bus.publish("/cam/info", msgbuild.camera_info_from_intrinsics(ch, CAM, T))
+        bus.publish("/cam/depth_info", msgbuild.camera_info_from_intrinsics(dh, CAM, T))
+        bus.publish("/cam/depth", msgbuild.image_from_numpy(dh, mm, T))
+        bus.publish("/cam/color", msgbuild.image_from_numpy(ch, rgb, T))
+
+    def stamped(child, x):
+        Tr, V, Q = TS.types["geometry_msgs/msg/Transform"], TS.types["geometry_msgs/msg/Vector3"], TS.types["geometry_msgs/msg/Quaternion"]
+        return TS.types["geometry_msgs/msg/TransformStamped"](
+            header=msgbuild.make_header(T, 0, "camera_link"), child_frame_id=child,
+            transform=Tr(translation=V(x=x, y=0.0, z=0.0), rotation=Q(x=0.0, y=0.0, z=0.0, w=1.0)))
+
+    try:
+        assert ctx.qos["/tf_static"] == ("tf_static", 100)
+        publish_frame(T0)
+        assert wait_for(lambda: node.worker.processed + (node.worker.last_error != "") >= 1 and bus.idle(), 20)
+        assert not bus.published["/cloud"] and "not registered" in node.worker.last_error
+        # the colour optical frame sits 0.2 m left of the depth one (x to the right)
+        bus.publish("/tf_static", T.TFMessage(transforms=[stamped("depth_optical", 0.0), stamped("color_optical", -shift_m)]))
+        publish_frame(T0 + 100_000_000)
+        assert wait_for(lambda: len(bus.published["/cloud"]) == 1, 20)
+        assert any("registered into the colour camera" in m for _, m in ctx.logs)
+        got = msgconv.pointcloud2_to_arrays(bus.published["/cloud"][0])
+        pts = got.xyz[got.valid]
+        # brute force: each depth pixel moved into the colour frame, seen at its colour pixel
+        expect = []
+        z = z_mm / 1000.0
+        for v in range(24):
+            for u in range(32):
+                if mm[v, u] == 0:
+                    continue
+                xc = (u - cx) * z / fx + shift_m
+                uc = int(round(fx * xc / z + cx))
+                if 0 <= uc < 32:
+                    expect.append(((uc - cx) * z / fx, (v - cy) * z / CAM.fy, z))
+        expect = np.array(sorted(expect))
+        assert len(pts) == len(expect) == 24 * 32 - 12 - 2 * 24
+        np.testing.assert_allclose(pts[np.lexsort(pts.T[::-1])], expect, atol=1e-5)
     finally:
         node.close()

@@ -46,6 +46,10 @@ def rclpy_types() -> SimpleNamespace:
             setattr(ns, attr, getattr(importlib.import_module(f"{pkg}.msg"), name))
         except (ImportError, AttributeError):
             pass  # e.g. MeshFile on older distros: builders skip what is missing
+    try:  # /tf_static (depth -> colour extrinsic); not a message the nodes build
+        ns.TFMessage = importlib.import_module("tf2_msgs.msg").TFMessage
+    except ImportError:  # pragma: no cover - tf2_msgs comes with every ROS 2 install
+        pass
     ns.u8 = lambda a: array.array("B", np.ascontiguousarray(np.asarray(a, dtype=np.uint8)).tobytes())
     ns.f64 = lambda a: array.array("d", np.ascontiguousarray(np.asarray(a, dtype=np.float64)).tobytes())
     ns.f64fixed = lambda a: np.ascontiguousarray(np.asarray(a, dtype=np.float64).reshape(-1))
@@ -56,7 +60,11 @@ def rclpy_types() -> SimpleNamespace:
 
 def qos(kind: str, depth: int) -> QoSProfile:
     """``sensor_data`` (best effort, volatile: matches reliable and best-effort publishers),
-    ``reliable``, ``best_effort`` or ``system_default`` with a KEEP_LAST ``depth``."""
+    ``reliable``, ``best_effort``, ``system_default`` or ``tf_static`` (reliable, transient local: what
+    tf2's static broadcaster latches) with a KEEP_LAST ``depth``."""
+    if kind == "tf_static":
+        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(depth), reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
     if kind == "system_default":
         p = QoSProfile(depth=int(depth))
         p.reliability = qos_profile_system_default.reliability
