@@ -64,9 +64,11 @@ class StampMatcher:
     buffered message not newer than the matched ones is dropped (it can no longer be part of a
     newer set) and counted in ``dropped[stream]``. Messages with a stamp not newer than the last
     match of their stream are dropped on arrival, unless the stamp is older than the newest match
-    by more than ``jump_back_tolerance_ns`` (default 1 s): then time jumped back (a looped bag, a
-    restarted driver), and the matcher starts over (buffers dropped and counted, ``time_jumps`` + 1,
-    ``on_time_jump(text)`` called once) with this message as the first of the new timeline.
+    by more than ``jump_back_tolerance_ns`` (default 1 s), or it repeats a stamp already matched on
+    its stream in this timeline (a looped bag shorter than the tolerance): then time jumped back (a
+    looped bag, a restarted driver), and the matcher starts over (buffers dropped and counted,
+    ``time_jumps`` + 1, ``on_time_jump(text)`` called once) with this message as the first of the new
+    timeline.
     """
 
     def __init__(self, streams: Iterable[str], tolerance_ns: int = 20_000_000, queue_size: int = 10,
@@ -86,6 +88,7 @@ class StampMatcher:
         self.dropped: dict[str, int] = {s: 0 for s in self.streams}
         self.matched = 0
         self._last_match: dict[str, int] = {}
+        self._matched_stamps: dict[str, deque[int]] = {s: deque(maxlen=1024) for s in self.streams}  # this timeline's
 
     @property
     def reference(self) -> str:
@@ -104,7 +107,8 @@ class StampMatcher:
         with self._lock:
             if self._last_match:
                 newest = max(self._last_match.values())
-                if stamp_ns < newest - self.jump_back_tolerance_ns:
+                repeat = stamp_ns < self._last_match.get(stream, stamp_ns) and stamp_ns in self._matched_stamps[stream]
+                if stamp_ns < newest - self.jump_back_tolerance_ns or repeat:
                     self._restart(newest - stamp_ns, stamp_ns)
             last = self._last_match.get(stream)
             if last is not None and stamp_ns <= last:
@@ -148,6 +152,7 @@ class StampMatcher:
                         else:
                             self.dropped[s] += 1
                     self._last_match[s] = st
+                    self._matched_stamps[s].append(st)
                 self.matched += 1
                 return MatchedSet(ref_stamp, {s: m for s, (_, m) in chosen.items()}, {s: st for s, (st, _) in chosen.items()})
         return None
@@ -157,6 +162,8 @@ class StampMatcher:
             self.dropped[s] += len(b)
             b.clear()
         self._last_match.clear()
+        for d in self._matched_stamps.values():
+            d.clear()
         self.time_jumps += 1
         if self.on_time_jump is not None:
             self.on_time_jump(_jump_text(f"input sync ({', '.join(self.streams)})", back_ns, stamp_ns))
@@ -315,6 +322,8 @@ class PartitionAssembler:
     ``jump_back_tolerance_ns`` (default 1 s): then time jumped back (a looped bag, a restarted
     driver), the pending sets are released as failed, the released stamps are forgotten,
     ``time_jumps`` + 1 and ``on_time_jump(text)`` is called once, so the new pass is assembled again.
+    A plan (:meth:`expect`) for a stamp already released is such a jump too: the planner plans each
+    input frame once, so the stamp came again (a looped bag shorter than the tolerance).
     """
 
     def __init__(self, timeout_s: float = 10.0, max_pending: int = 4, clock: Callable[[], float] = time.monotonic,
@@ -340,8 +349,8 @@ class PartitionAssembler:
         self.completed = 0     # axis sets released complete
 
     # -- input --
-    def _frame(self, stamp_ns: int) -> _Frame | None:
-        if self._newest is not None and stamp_ns < self._newest - self.jump_back_tolerance_ns:
+    def _frame(self, stamp_ns: int, plan: bool = False) -> _Frame | None:
+        if self._newest is not None and (stamp_ns < self._newest - self.jump_back_tolerance_ns or (plan and stamp_ns in self._released)):
             back = self._newest - stamp_ns
             for old in list(self._frames):
                 self._release(old, f"time jumped back by {back / 1e9:.3f} s before it was complete")
@@ -371,7 +380,7 @@ class PartitionAssembler:
     def expect(self, stamp_ns: int, axes: dict[str, int | str], info: Any = None, axis_info: dict[str, Any] | None = None) -> None:
         """The plan of input frame ``stamp_ns``: ``{axis: frame count}`` or ``{axis: "error text"}``."""
         with self._lock:
-            fr = self._frame(int(stamp_ns))
+            fr = self._frame(int(stamp_ns), plan=True)
             if fr is None:
                 return
             fr.expected_axes = list(axes)
