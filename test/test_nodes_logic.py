@@ -460,3 +460,28 @@ def test_unregistered_depth_is_registered_with_the_extrinsic_from_tf_static(bus)
         np.testing.assert_allclose(pts[np.lexsort(pts.T[::-1])], expect, atol=1e-5)
     finally:
         node.close()
+
+
+def test_a_worker_busy_at_close_is_reported_until_it_ends():
+    """A frame still in flight when the node closes (shutdown is polled between axes) is named by
+    still_running_workers, which makes _ros.run end the process without tearing torch down under it."""
+    from pws_ros.nodes._common import Worker, still_running_workers
+
+    started, release = threading.Event(), threading.Event()
+
+    def slow(_item):
+        started.set()
+        release.wait(10)
+
+    logs = []
+    w = Worker("pws-test-busy", slow, lambda lvl, msg: logs.append((lvl, msg)))
+    idle = Worker("pws-test-idle", slow, lambda lvl, msg: logs.append((lvl, msg)))
+    assert "pws-test-busy" not in still_running_workers()  # running, but not asked to stop
+    w.submit(1)
+    assert started.wait(5)
+    w.close(timeout=0.1)
+    idle.close(timeout=2)
+    assert "pws-test-busy" in still_running_workers() and "pws-test-idle" not in still_running_workers()
+    release.set()
+    w.thread.join(5)
+    assert "pws-test-busy" not in still_running_workers() and not logs

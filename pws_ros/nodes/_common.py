@@ -7,6 +7,7 @@ import sys
 import threading
 import time
 import traceback
+import weakref
 from typing import Any, Callable
 
 from ..bridge import msgbuild, msgconv
@@ -35,6 +36,14 @@ def start(node_name: str, logic_class: Callable[..., Any], args: list[str] | Non
     return _ros.run(node_name, lambda node: logic_class(_ros.NodeContext(node, node_name)), args)
 
 
+_WORKERS: "weakref.WeakSet[Worker]" = weakref.WeakSet()
+
+
+def still_running_workers() -> list[str]:
+    """The names of the :class:`Worker` threads still running after :meth:`Worker.close` was asked."""
+    return sorted(w.thread.name for w in list(_WORKERS) if w.stopping and w.thread.is_alive())
+
+
 class Worker:
     """A daemon thread that processes the newest item of a :class:`LatestSlot` with ``fn``.
 
@@ -53,6 +62,7 @@ class Worker:
         self._stop = threading.Event()
         self.thread = threading.Thread(target=self._loop, name=name, daemon=True)
         self.thread.start()
+        _WORKERS.add(self)
 
     def submit(self, item: Any) -> bool:
         """Hand over the newest input; True if an older one was dropped."""
@@ -88,7 +98,8 @@ class Worker:
     def close(self, timeout: float = 2.0) -> None:
         """Ask the thread to stop and wait up to ``timeout`` s. ``ros2 launch`` escalates to SIGTERM 5 s
         after SIGINT, so this stays short: a computation that does not see ``stopping`` in time (a
-        plan on a huge cloud) is abandoned with the daemon thread when the process exits."""
+        plan on a huge cloud, an axis being certified) is abandoned: the node's process then ends
+        with ``os._exit`` (:func:`still_running_workers`, ``_ros.run``)."""
         self._stop.set()
         self.slot.close()
         self.thread.join(timeout)

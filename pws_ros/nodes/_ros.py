@@ -3,6 +3,8 @@ only inside functions, so they stay importable (and testable) where ROS 2 is not
 from __future__ import annotations
 
 import array
+import os
+import sys
 import threading
 import time
 from types import SimpleNamespace
@@ -13,6 +15,7 @@ import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import NameValidationException, ParameterException
+from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_policy_name_from_kind,
                        qos_profile_system_default)
@@ -20,7 +23,7 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
 from ..bridge.config import SPECS, ParamSpec, PwsConfig, check_consistency, config_from_params, spec_table, validate_param
 from ..bridge.msgbuild import MESSAGE_TYPES
 from ..core.errors import PwsError
-from ._common import ShutdownSafePublisher
+from ._common import ShutdownSafePublisher, still_running_workers
 
 try:  # Iron and later
     from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
@@ -279,7 +282,17 @@ def run(node_name: str, factory: Callable[[Node], Any], args: list[str] | None =
         if logic is not None and hasattr(logic, "close"):
             logic.close()
         node.destroy_node()
+        busy = still_running_workers()
+        if busy:  # said by name after destroy_node: rosout cannot publish once SIGINT shut the context down
+            get_logger(node_name).info(f"shutdown: the frame in flight is abandoned ({', '.join(busy)} still busy)")
         rclpy.try_shutdown()
+    if still_running_workers():
+        # a worker still inside torch (shutdown is polled between axes): a normal interpreter exit would
+        # tear torch down under it ("terminate called without an active exception", SIGABRT, which
+        # ros2 launch logs as an ERROR); nothing is left to flush but the standard streams
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
     return code
 
 
