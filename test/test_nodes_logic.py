@@ -485,3 +485,47 @@ def test_a_worker_busy_at_close_is_reported_until_it_ends():
     release.set()
     w.thread.join(5)
     assert "pws-test-busy" not in still_running_workers() and not logs
+
+
+def test_four_processes_a_replanned_frame_the_projector_drops_is_no_error(model_path):
+    """A looped bag plans a stamp again; when the busy projector drops that plan (its online policy),
+    the certifier must not open a set that times out into an ERROR certification (seen live)."""
+    from pws_ros.bridge.sync import PartitionAssembler
+
+    bus = Bus()
+    ctxs, nodes = four_nodes(bus, model_path, assembly_timeout_s=0.5)
+    projector, certifier = nodes[2], nodes[3]
+    a, b = T0, T0 + 100_000_000
+    skipped = []
+    submit = projector.worker.submit
+
+    def busy_projector(bundle):  # pass 2: stamp a is dropped by the projector's online policy
+        if bundle.stamp_ns == a and len(bus.published["/certification"]) >= 2:
+            skipped.append(bundle.stamp_ns)
+            return True
+        return submit(bundle)
+
+    projector.worker.submit = busy_projector
+    try:
+        certs = bus.published["/certification"]
+        play(bus, [a, b], lambda: certs, tick=[ctxs["certifier"]])
+        for topic, msg in frame_messages(a).items():  # the loop: a again, dropped by the projector
+            bus.publish(topic, msg)
+        assert wait_for(lambda: skipped and bus.idle())
+        play(bus, [b], lambda: certs[2:], tick=[ctxs["certifier"]])
+        time.sleep(1.0)  # twice the assembly timeout
+        certifier._poll()  # its timer: what timed out is released now
+        assert wait_for(lambda: bus.idle() and not certifier.worker.busy and not certifier.worker.slot.peek_full())
+        assert stamps_of(certs) == [a, b, b]
+        assert all(v["level"] in (0, 1) for m in certs for v in msgbuild.parse_certification(m).values())
+        assert isinstance(certifier.assembler, PartitionAssembler) and certifier.assembler.failed == 0
+        assert certifier.assembler.time_jumps == 1
+    finally:
+        for nd in nodes:
+            nd.close()
+        bus.close()
+    assert not bus.errors, bus.errors
+
+
+def stamps_of(msgs):
+    return [msgconv.stamp_to_ns(m.header.stamp) for m in msgs]
