@@ -442,8 +442,7 @@ def test_unregistered_depth_is_registered_with_the_extrinsic_from_tf_static(bus)
         publish_frame(T0 + 100_000_000)
         assert wait_for(lambda: len(bus.published["/cloud"]) == 1, 20)
         assert any("registered into the colour camera" in m for _, m in ctx.logs)
-        got = msgconv.pointcloud2_to_arrays(bus.published["/cloud"][0])
-        pts = got.xyz[got.valid]
+        pts = cloud_xyz(bus.published["/cloud"][0])
         # brute force: each depth pixel moved into the colour frame, seen at its colour pixel
         expect = []
         z = z_mm / 1000.0
@@ -490,8 +489,6 @@ def test_a_worker_busy_at_close_is_reported_until_it_ends():
 def test_four_processes_a_replanned_frame_the_projector_drops_is_no_error(model_path):
     """A looped bag plans a stamp again; when the busy projector drops that plan (its online policy),
     the certifier must not open a set that times out into an ERROR certification (seen live)."""
-    from pws_ros.bridge.sync import PartitionAssembler
-
     bus = Bus()
     ctxs, nodes = four_nodes(bus, model_path, assembly_timeout_s=0.5)
     projector, certifier = nodes[2], nodes[3]
@@ -518,7 +515,7 @@ def test_four_processes_a_replanned_frame_the_projector_drops_is_no_error(model_
         assert wait_for(lambda: bus.idle() and not certifier.worker.busy and not certifier.worker.slot.peek_full())
         assert stamps_of(certs) == [a, b, b]
         assert all(v["level"] in (0, 1) for m in certs for v in msgbuild.parse_certification(m).values())
-        assert isinstance(certifier.assembler, PartitionAssembler) and certifier.assembler.failed == 0
+        assert certifier.assembler.failed == 0
         assert certifier.assembler.time_jumps == 1
     finally:
         for nd in nodes:
@@ -529,3 +526,12 @@ def test_four_processes_a_replanned_frame_the_projector_drops_is_no_error(model_
 
 def stamps_of(msgs):
     return [msgconv.stamp_to_ns(m.header.stamp) for m in msgs]
+
+
+def cloud_xyz(msg):
+    """The finite x, y, z (float32 little-endian fields) of a PointCloud2, read with numpy here."""
+    assert not msg.is_bigendian
+    offsets = {f.name: f.offset for f in msg.fields}
+    rows = np.frombuffer(bytes(msg.data), np.uint8).reshape(-1, msg.point_step)
+    xyz = np.stack([rows[:, offsets[a]:offsets[a] + 4].copy().view("<f4")[:, 0] for a in "xyz"], axis=1).astype(np.float64)
+    return xyz[np.isfinite(xyz).all(axis=1)]

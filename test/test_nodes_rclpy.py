@@ -244,7 +244,7 @@ def test_cloud_listener_registers_depth_with_latched_tf_static(ros):
     from rclpy.node import Node
     from rclpy.parameter import Parameter
 
-    from pws_ros.bridge import msgbuild, msgconv
+    from pws_ros.bridge import msgbuild
     from pws_ros.core.camera import CameraIntrinsics
     from pws_ros.nodes._ros import NodeContext, qos, rclpy_types
     from pws_ros.nodes.cloud_listener import CloudListenerNode
@@ -292,8 +292,9 @@ def test_cloud_listener_registers_depth_with_latched_tf_static(ros):
         pubs[3].publish(msgbuild.image_from_numpy(ch, np.zeros((24, 32, 3), np.uint8), T))
         assert spin_until(lambda: len(clouds) == 1, 30), f"no cloud (worker: {logic.worker.last_error!r})"
         assert logic.frontend.static_tf.extrinsic is not None
-        xyz = msgconv.pointcloud2_to_arrays(clouds[0]).xyz
-        xyz = xyz[np.isfinite(xyz).all(axis=1)]
+        from test_nodes_logic import cloud_xyz
+
+        xyz = cloud_xyz(clouds[0])
         # 0.2 m baseline at 3 m and fx 30: depth shifted 2 px to the right; the 2 leftmost columns are holes
         assert len(xyz) == 24 * 30 and np.allclose(xyz[:, 2], 3.0)
         assert np.isclose(xyz[:, 0].min(), (2 - 15.5) * 3.0 / 30.0, atol=1e-5)
