@@ -15,10 +15,11 @@ import pytest
 from pws_ros.bridge import msgbuild, msgconv, scheme
 from pws_ros.bridge.config import config_from_params
 from pws_ros.core.camera import CameraIntrinsics
+from pws_ros.nodes._common import TF_MESSAGE_TYPE
 
 T = msgbuild.rosbags_types()
 TS = T.typestore
-T.TFMessage = TS.types["tf2_msgs/msg/TFMessage"]  # as pws_ros.nodes._ros.rclpy_types gives it
+T.TFMessage = TS.types[TF_MESSAGE_TYPE]  # as pws_ros.nodes._ros.rclpy_types gives it
 T0 = 1_700_000_000_000_000_000
 CAM = CameraIntrinsics(32, 24, 30.0, 30.0, 15.5, 11.5, "cam")
 

@@ -269,8 +269,10 @@ class InputFrontend:
         if mode in ("auto", "rgbd"):
             self.subs.append(ctx.subscription(T.Image, cfg.depth_topic, self._wrap(self.assembler.on_depth, "depth")))
             self.subs.append(ctx.subscription(T.Image, cfg.color_topic, self._wrap(self.assembler.on_color, "color")))
-            # the depth -> colour extrinsic of unregistered depth (latched: reliable, transient local)
-            self.subs.append(ctx.subscription(T.TFMessage, TF_STATIC_TOPIC, self._on_tf_static, kind="tf_static", depth=100))
+            # the depth -> colour extrinsic of unregistered depth (latched: reliable, transient local);
+            # rclpy_types always has TFMessage, an in-memory test context may leave it out
+            if getattr(T, "TFMessage", None) is not None:
+                self.subs.append(ctx.subscription(T.TFMessage, TF_STATIC_TOPIC, self._on_tf_static, kind="tf_static", depth=100))
         # CameraInfo is needed by both modes (optional for organized clouds)
         self.subs.append(ctx.subscription(T.CameraInfo, cfg.camera_info_topic, self._wrap(self.assembler.on_info)))
         dinfo = depth_info_topic(cfg) if mode in ("auto", "rgbd") else ""

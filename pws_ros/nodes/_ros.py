@@ -23,7 +23,7 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
 from ..bridge.config import SPECS, ParamSpec, PwsConfig, check_consistency, config_from_params, spec_table, validate_param
 from ..bridge.msgbuild import MESSAGE_TYPES
 from ..core.errors import PwsError
-from ._common import ShutdownSafePublisher, still_running_workers
+from ._common import TF_MESSAGE_TYPE, ShutdownSafePublisher, still_running_workers
 
 try:  # Iron and later
     from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
@@ -43,16 +43,12 @@ def rclpy_types() -> SimpleNamespace:
     import importlib
 
     ns = SimpleNamespace(flavour="rclpy")
-    for attr, full in MESSAGE_TYPES.items():
+    for attr, full in {**MESSAGE_TYPES, "TFMessage": TF_MESSAGE_TYPE}.items():  # + /tf_static, read by the nodes
         pkg, _, name = full.split("/")
         try:
             setattr(ns, attr, getattr(importlib.import_module(f"{pkg}.msg"), name))
         except (ImportError, AttributeError):
             pass  # e.g. MeshFile on older distros: builders skip what is missing
-    try:  # /tf_static (depth -> colour extrinsic); not a message the nodes build
-        ns.TFMessage = importlib.import_module("tf2_msgs.msg").TFMessage
-    except ImportError:  # pragma: no cover - tf2_msgs comes with every ROS 2 install
-        pass
     ns.u8 = lambda a: array.array("B", np.ascontiguousarray(np.asarray(a, dtype=np.uint8)).tobytes())
     ns.f64 = lambda a: array.array("d", np.ascontiguousarray(np.asarray(a, dtype=np.float64)).tobytes())
     ns.f64fixed = lambda a: np.ascontiguousarray(np.asarray(a, dtype=np.float64).reshape(-1))
