@@ -8,7 +8,7 @@ import sys
 import threading
 import time
 from types import SimpleNamespace
-from typing import Any, Callable
+from typing import Any, Callable, NoReturn
 
 import numpy as np
 import rclpy
@@ -250,8 +250,9 @@ class NodeContext:
 
 # ---- running ------------------------------------------------------------------------------
 
-def run(node_name: str, factory: Callable[[Node], Any], args: list[str] | None = None) -> int:
-    """``rclpy.init``, create the node, build the logic with ``factory(node)``, spin, shut down.
+def run(node_name: str, factory: Callable[[Node], Any], args: list[str] | None = None) -> NoReturn:
+    """``rclpy.init``, create the node, build the logic with ``factory(node)``, spin, shut down, and end
+    the process (``os._exit`` with the exit status: a node executable's ``main`` only).
 
     A PwsError at start-up (bad parameter, missing model ...) is logged as FATAL; exit status 2.
     """
@@ -282,13 +283,12 @@ def run(node_name: str, factory: Callable[[Node], Any], args: list[str] | None =
         if busy:  # said by name after destroy_node: rosout cannot publish once SIGINT shut the context down
             get_logger(node_name).info(f"shutdown: the frame in flight is abandoned ({', '.join(busy)} still busy)")
         rclpy.try_shutdown()
-    if still_running_workers():
-        # a worker still inside torch (shutdown is polled between axes): a normal interpreter exit would
-        # tear torch down under it ("terminate called without an active exception", SIGABRT, which
-        # ros2 launch logs as an ERROR); nothing is left to flush but the standard streams
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(code)
-    return code
+    # The node's process ends here, without the interpreter's teardown: with a worker still inside torch
+    # (shutdown is polled between axes) that teardown aborts ("terminate called without an active
+    # exception", SIGABRT), and on a loaded machine it can outlast the 5 s ros2 launch grants after
+    # SIGINT before escalating to SIGTERM (both logged as ERROR). Nothing is left to flush but stdio.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
