@@ -83,16 +83,21 @@ def test_matcher_rejects_bad_setup():
 @settings(max_examples=50, deadline=None)
 @given(st.lists(st.tuples(st.sampled_from(["a", "b"]), st.integers(0, 50)), max_size=40), st.integers(0, 3), st.integers(1, 5))
 def test_matcher_invariants(events, tol, qsize):
-    """Every match is within tolerance; matched stamps strictly increase per stream; every message
-    is either matched, dropped or still buffered; buffers never exceed the queue size."""
+    """Every match is within tolerance; matched stamps strictly increase per stream within a timeline
+    (a repeated stamp, as in a looped bag, starts a new one); every message is either matched,
+    dropped or still buffered; buffers never exceed the queue size."""
     m = StampMatcher(("a", "b"), tolerance_ns=tol, queue_size=qsize)
     last = {"a": -1, "b": -1}
     counts = {"a": 0, "b": 0}
     matched = 0
+    jumps = 0
     for stream, stamp in events:
         counts[stream] += 1
         got = m.add(stream, stamp, (stream, stamp))
         assert max(m.pending().values()) <= qsize
+        if m.time_jumps != jumps:
+            assert m.time_jumps == jumps + 1 and stamp < last[stream]
+            jumps, last = m.time_jumps, {"a": -1, "b": -1}
         if got is not None:
             matched += 1
             assert abs(got.stamps["a"] - got.stamps["b"]) <= tol

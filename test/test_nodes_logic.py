@@ -15,9 +15,11 @@ import pytest
 from pws_ros.bridge import msgbuild, msgconv, scheme
 from pws_ros.bridge.config import config_from_params
 from pws_ros.core.camera import CameraIntrinsics
+from pws_ros.nodes._common import TF_MESSAGE_TYPE
 
 T = msgbuild.rosbags_types()
 TS = T.typestore
+T.TFMessage = TS.types[TF_MESSAGE_TYPE]  # as pws_ros.nodes._ros.rclpy_types gives it
 T0 = 1_700_000_000_000_000_000
 CAM = CameraIntrinsics(32, 24, 30.0, 30.0, 15.5, 11.5, "cam")
 
@@ -403,3 +405,134 @@ def test_unregistered_depth_is_refused_by_default(bus, model_path):
         assert all(v["level"] == 2 and "not registered" in v["message"] for v in parsed.values())
     finally:
         node.close()
+
+
+def test_unregistered_depth_is_registered_with_the_extrinsic_from_tf_static(bus):
+    """A RealSense-style camera without align_depth: depth in its own optical frame, related to the
+    colour frame only through /tf_static (camera_link -> each optical frame). Refused until the
+    transform arrives; then registered, and the cloud is the brute-force one written here."""
+    from pws_ros.nodes.cloud_listener import CloudListenerNode
+
+    ctx = Context(bus, "cloud_listener", **params("unused.pt", depth_camera_info_topic="/cam/depth_info"))
+    node = CloudListenerNode(ctx)
+    fx, cx, cy, z_mm, shift_m = CAM.fx, CAM.cx, CAM.cy, 3000, 0.2   # a 0.2 m baseline at 3 m: 2 px
+    mm = np.full((24, 32), z_mm, np.uint16)
+    mm[5:8, 10:14] = 0                                             # a hole stays a hole
+    rgb = np.random.default_rng(5).integers(0, 256, (24, 32, 3), dtype=np.uint8)
+
+    def publish_frame(stamp_ns):
+        dh, ch = msgbuild.make_header(T, stamp_ns, "depth_optical"), msgbuild.make_header(T, stamp_ns, "color_optical")
+        bus.publish("/cam/info", msgbuild.camera_info_from_intrinsics(ch, CAM, T))
+        bus.publish("/cam/depth_info", msgbuild.camera_info_from_intrinsics(dh, CAM, T))
+        bus.publish("/cam/depth", msgbuild.image_from_numpy(dh, mm, T))
+        bus.publish("/cam/color", msgbuild.image_from_numpy(ch, rgb, T))
+
+    def stamped(child, x):
+        Tr, V, Q = TS.types["geometry_msgs/msg/Transform"], TS.types["geometry_msgs/msg/Vector3"], TS.types["geometry_msgs/msg/Quaternion"]
+        return TS.types["geometry_msgs/msg/TransformStamped"](
+            header=msgbuild.make_header(T, 0, "camera_link"), child_frame_id=child,
+            transform=Tr(translation=V(x=x, y=0.0, z=0.0), rotation=Q(x=0.0, y=0.0, z=0.0, w=1.0)))
+
+    try:
+        assert ctx.qos["/tf_static"] == ("tf_static", 100)
+        publish_frame(T0)
+        assert wait_for(lambda: node.worker.processed + (node.worker.last_error != "") >= 1 and bus.idle(), 20)
+        assert not bus.published["/cloud"] and "not registered" in node.worker.last_error
+        # the colour optical frame sits 0.2 m left of the depth one (x to the right)
+        bus.publish("/tf_static", T.TFMessage(transforms=[stamped("depth_optical", 0.0), stamped("color_optical", -shift_m)]))
+        publish_frame(T0 + 100_000_000)
+        assert wait_for(lambda: len(bus.published["/cloud"]) == 1, 20)
+        assert any("registered into the colour camera" in m for _, m in ctx.logs)
+        pts = cloud_xyz(bus.published["/cloud"][0])
+        # brute force: each depth pixel moved into the colour frame, seen at its colour pixel
+        expect = []
+        z = z_mm / 1000.0
+        for v in range(24):
+            for u in range(32):
+                if mm[v, u] == 0:
+                    continue
+                xc = (u - cx) * z / fx + shift_m
+                uc = int(round(fx * xc / z + cx))
+                if 0 <= uc < 32:
+                    expect.append(((uc - cx) * z / fx, (v - cy) * z / CAM.fy, z))
+        expect = np.array(sorted(expect))
+        assert len(pts) == len(expect) == 24 * 32 - 12 - 2 * 24
+        np.testing.assert_allclose(pts[np.lexsort(pts.T[::-1])], expect, atol=1e-5)
+    finally:
+        node.close()
+
+
+def test_a_worker_busy_at_close_is_reported_until_it_ends():
+    """A frame still in flight when the node closes (shutdown is polled between axes) is named by
+    still_running_workers, which makes _ros.run end the process without tearing torch down under it."""
+    from pws_ros.nodes._common import Worker, still_running_workers
+
+    started, release = threading.Event(), threading.Event()
+
+    def slow(_item):
+        started.set()
+        release.wait(10)
+
+    logs = []
+    w = Worker("pws-test-busy", slow, lambda lvl, msg: logs.append((lvl, msg)))
+    idle = Worker("pws-test-idle", slow, lambda lvl, msg: logs.append((lvl, msg)))
+    assert "pws-test-busy" not in still_running_workers()  # running, but not asked to stop
+    w.submit(1)
+    assert started.wait(5)
+    w.close(timeout=0.1)
+    idle.close(timeout=2)
+    assert "pws-test-busy" in still_running_workers() and "pws-test-idle" not in still_running_workers()
+    release.set()
+    w.thread.join(5)
+    assert "pws-test-busy" not in still_running_workers() and not logs
+
+
+def test_four_processes_a_replanned_frame_the_projector_drops_is_no_error(model_path):
+    """A looped bag plans a stamp again; when the busy projector drops that plan (its online policy),
+    the certifier must not open a set that times out into an ERROR certification (seen live)."""
+    bus = Bus()
+    ctxs, nodes = four_nodes(bus, model_path, assembly_timeout_s=0.5)
+    projector, certifier = nodes[2], nodes[3]
+    a, b = T0, T0 + 100_000_000
+    skipped = []
+    submit = projector.worker.submit
+
+    def busy_projector(bundle):  # pass 2: stamp a is dropped by the projector's online policy
+        if bundle.stamp_ns == a and len(bus.published["/certification"]) >= 2:
+            skipped.append(bundle.stamp_ns)
+            return True
+        return submit(bundle)
+
+    projector.worker.submit = busy_projector
+    try:
+        certs = bus.published["/certification"]
+        play(bus, [a, b], lambda: certs, tick=[ctxs["certifier"]])
+        for topic, msg in frame_messages(a).items():  # the loop: a again, dropped by the projector
+            bus.publish(topic, msg)
+        assert wait_for(lambda: skipped and bus.idle())
+        play(bus, [b], lambda: certs[2:], tick=[ctxs["certifier"]])
+        time.sleep(1.0)  # twice the assembly timeout
+        certifier._poll()  # its timer: what timed out is released now
+        assert wait_for(lambda: bus.idle() and not certifier.worker.busy and not certifier.worker.slot.peek_full())
+        assert stamps_of(certs) == [a, b, b]
+        assert all(v["level"] in (0, 1) for m in certs for v in msgbuild.parse_certification(m).values())
+        assert certifier.assembler.failed == 0
+        assert certifier.assembler.time_jumps == 1
+    finally:
+        for nd in nodes:
+            nd.close()
+        bus.close()
+    assert not bus.errors, bus.errors
+
+
+def stamps_of(msgs):
+    return [msgconv.stamp_to_ns(m.header.stamp) for m in msgs]
+
+
+def cloud_xyz(msg):
+    """The finite x, y, z (float32 little-endian fields) of a PointCloud2, read with numpy here."""
+    assert not msg.is_bigendian
+    offsets = {f.name: f.offset for f in msg.fields}
+    rows = np.frombuffer(bytes(msg.data), np.uint8).reshape(-1, msg.point_step)
+    xyz = np.stack([rows[:, offsets[a]:offsets[a] + 4].copy().view("<f4")[:, 0] for a in "xyz"], axis=1).astype(np.float64)
+    return xyz[np.isfinite(xyz).all(axis=1)]

@@ -234,3 +234,72 @@ def test_incompatible_qos_is_logged_and_counted(ros, make_model_file):
         ex.shutdown()
         camera.destroy_node()
         node.destroy_node()
+
+
+def test_cloud_listener_registers_depth_with_latched_tf_static(ros):
+    """/tf_static published (transient local, as tf2's static broadcaster does) before the node
+    starts still reaches it; unregistered depth is then registered and converted, not refused."""
+    from geometry_msgs.msg import TransformStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    from pws_ros.bridge import msgbuild
+    from pws_ros.core.camera import CameraIntrinsics
+    from pws_ros.nodes._ros import NodeContext, qos, rclpy_types
+    from pws_ros.nodes.cloud_listener import CloudListenerNode
+
+    T = rclpy_types()
+
+    driver = Node("camera_driver")
+    tf_pub = driver.create_publisher(T.TFMessage, "/tf_static", qos("tf_static", 1))
+    links = []
+    for child, x in (("depth_optical", 0.0), ("color_optical", -0.2)):
+        ts = TransformStamped()
+        ts.header.frame_id, ts.child_frame_id = "camera_link", child
+        ts.transform.translation.x, ts.transform.rotation.w = x, 1.0
+        links.append(ts)
+    tf_pub.publish(T.TFMessage(transforms=links))  # before the listener exists: latched
+    params = [Parameter("input_mode", value="rgbd"), Parameter("depth_topic", value="/cam/depth"),
+              Parameter("color_topic", value="/cam/color"), Parameter("camera_info_topic", value="/cam/info"),
+              Parameter("depth_camera_info_topic", value="/cam/depth_info")]
+    node = Node("cloud_listener", parameter_overrides=params)
+    logic = CloudListenerNode(NodeContext(node, "cloud_listener"))
+    clouds = []
+    driver.create_subscription(T.PointCloud2, "/cloud", clouds.append, qos("reliable", 5))
+    names = ("/cam/info", "/cam/depth_info", "/cam/depth", "/cam/color")
+    pubs = [driver.create_publisher(T.CameraInfo if "info" in t else T.Image, t, qos("reliable", 5)) for t in names]
+    ex = SingleThreadedExecutor()
+    ex.add_node(node)
+    ex.add_node(driver)
+
+    def spin_until(cond, timeout):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and not cond():
+            ex.spin_once(timeout_sec=0.05)
+        return cond()
+
+    try:
+        assert spin_until(lambda: logic.frontend.static_tf.messages > 0, 20), "the latched /tf_static did not arrive"
+        assert spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs), 20)
+        cam = CameraIntrinsics(32, 24, 30.0, 30.0, 15.5, 11.5)
+        dh, ch = msgbuild.make_header(T, T0, "depth_optical"), msgbuild.make_header(T, T0, "color_optical")
+        pubs[0].publish(msgbuild.camera_info_from_intrinsics(ch, cam, T))
+        pubs[1].publish(msgbuild.camera_info_from_intrinsics(dh, cam, T))
+        asm = logic.frontend.assembler
+        assert spin_until(lambda: asm.latest_info is not None and asm.latest_depth_info is not None, 20)
+        pubs[2].publish(msgbuild.image_from_numpy(dh, np.full((24, 32), 3000, np.uint16), T))
+        pubs[3].publish(msgbuild.image_from_numpy(ch, np.zeros((24, 32, 3), np.uint8), T))
+        assert spin_until(lambda: len(clouds) == 1, 30), f"no cloud (worker: {logic.worker.last_error!r})"
+        assert logic.frontend.static_tf.extrinsic is not None
+        from test_nodes_logic import cloud_xyz
+
+        xyz = cloud_xyz(clouds[0])
+        # 0.2 m baseline at 3 m and fx 30: depth shifted 2 px to the right; the 2 leftmost columns are holes
+        assert len(xyz) == 24 * 30 and np.allclose(xyz[:, 2], 3.0)
+        assert np.isclose(xyz[:, 0].min(), (2 - 15.5) * 3.0 / 30.0, atol=1e-5)
+    finally:
+        logic.close()
+        ex.shutdown()
+        driver.destroy_node()
+        node.destroy_node()

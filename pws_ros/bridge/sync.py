@@ -47,9 +47,11 @@ class StampMatcher(Timeline):
     buffered message not newer than the matched ones is dropped (it can no longer be part of a
     newer set) and counted in ``dropped[stream]``. Messages with a stamp not newer than the last
     match of their stream are dropped on arrival, unless the stamp is older than the newest match
-    by more than ``jump_back_tolerance_ns`` (default 1 s): then time jumped back (a looped bag, a
-    restarted driver), and the matcher starts over (buffers dropped and counted, ``time_jumps`` + 1,
-    ``on_time_jump(text)`` called once) with this message as the first of the new timeline.
+    by more than ``jump_back_tolerance_ns`` (default 1 s), or it repeats a stamp already matched on
+    its stream in this timeline (a looped bag shorter than the tolerance): then time jumped back (a
+    looped bag, a restarted driver), and the matcher starts over (buffers dropped and counted,
+    ``time_jumps`` + 1, ``on_time_jump(text)`` called once) with this message as the first of the new
+    timeline.
     """
 
     def __init__(self, streams: Iterable[str], tolerance_ns: int = 20_000_000, queue_size: int = 10,
@@ -66,6 +68,7 @@ class StampMatcher(Timeline):
         self.dropped: dict[str, int] = {s: 0 for s in self.streams}
         self.matched = 0
         self._last_match: dict[str, int] = {}
+        self._matched_stamps: dict[str, deque[int]] = {s: deque(maxlen=1024) for s in self.streams}  # this timeline's
 
     @property
     def reference(self) -> str:
@@ -82,8 +85,9 @@ class StampMatcher(Timeline):
         require(stream in self._buffers, f"unknown stream {stream!r}: expected one of {', '.join(self.streams)}")
         stamp_ns = int(stamp_ns)
         with self._lock:
+            repeat = stamp_ns < self._last_match.get(stream, stamp_ns) and stamp_ns in self._matched_stamps[stream]
             self._jumped_back(max(self._last_match.values(), default=None), stamp_ns,
-                              f"input sync ({', '.join(self.streams)})", self._restart)
+                              f"input sync ({', '.join(self.streams)})", self._restart, repeat=repeat)
             last = self._last_match.get(stream)
             if last is not None and stamp_ns <= last:
                 self.dropped[stream] += 1
@@ -126,6 +130,7 @@ class StampMatcher(Timeline):
                         else:
                             self.dropped[s] += 1
                     self._last_match[s] = st
+                    self._matched_stamps[s].append(st)
                 self.matched += 1
                 return MatchedSet(ref_stamp, {s: m for s, (_, m) in chosen.items()}, {s: st for s, (st, _) in chosen.items()})
         return None
@@ -138,6 +143,8 @@ class StampMatcher(Timeline):
     def _restart(self, back_ns: int) -> None:
         self._drop_buffered()
         self._last_match.clear()
+        for d in self._matched_stamps.values():
+            d.clear()
 
     def clear(self) -> None:
         with self._lock:

@@ -7,13 +7,15 @@ import sys
 import threading
 import time
 import traceback
+import weakref
 from typing import Any, Callable
 
-from ..bridge import msgbuild
+from ..bridge import msgbuild, msgconv
 from ..bridge.config import depth_info_topic
 from ..bridge.inputs import InputAssembler, RawFrame
 from ..bridge.sync import LatestSlot, RateMeter
 from ..core.errors import PwsError
+from ..core.registration import Extrinsic, chain_transform
 
 ROS_MISSING = ("rclpy (ROS 2 Jazzy) is not importable: install ROS 2 Jazzy and `source /opt/ros/jazzy/setup.bash` "
                "(then build this package with colcon); without ROS use the `pws` command")
@@ -34,6 +36,14 @@ def start(node_name: str, logic_class: Callable[..., Any], args: list[str] | Non
     return _ros.run(node_name, lambda node: logic_class(_ros.NodeContext(node, node_name)), args)
 
 
+_WORKERS: "weakref.WeakSet[Worker]" = weakref.WeakSet()
+
+
+def still_running_workers() -> list[str]:
+    """The names of the :class:`Worker` threads still running after :meth:`Worker.close` was asked."""
+    return sorted(w.thread.name for w in list(_WORKERS) if w.stopping and w.thread.is_alive())
+
+
 class Worker:
     """A daemon thread that processes the newest item of a :class:`LatestSlot` with ``fn``.
 
@@ -52,6 +62,7 @@ class Worker:
         self._stop = threading.Event()
         self.thread = threading.Thread(target=self._loop, name=name, daemon=True)
         self.thread.start()
+        _WORKERS.add(self)
 
     def submit(self, item: Any) -> bool:
         """Hand over the newest input; True if an older one was dropped."""
@@ -87,7 +98,8 @@ class Worker:
     def close(self, timeout: float = 2.0) -> None:
         """Ask the thread to stop and wait up to ``timeout`` s. ``ros2 launch`` escalates to SIGTERM 5 s
         after SIGINT, so this stays short: a computation that does not see ``stopping`` in time (a
-        plan on a huge cloud) is abandoned with the daemon thread when the process exits."""
+        plan on a huge cloud, an axis being certified) is abandoned: the node's process then ends
+        with ``os._exit`` (:func:`still_running_workers`, ``_ros.run``)."""
         self._stop.set()
         self.slot.close()
         self.thread.join(timeout)
@@ -181,6 +193,57 @@ class Throttle:
             self._count[key] = self._count.get(key, 0) + 1
 
 
+TF_STATIC_TOPIC = "/tf_static"
+TF_MESSAGE_TYPE = "tf2_msgs/msg/TFMessage"
+
+
+class StaticExtrinsic:
+    """The depth -> colour extrinsic from ``/tf_static`` for depth that is not registered to the
+    colour camera (a RealSense driver without ``align_depth``): the transform between the two images'
+    frame ids through the static TF tree, handed to the assembler, which then registers depth into
+    the colour camera (:func:`~pws_ros.core.registration.register_depth`). As in tf2's static buffer,
+    the newest transform of each child frame replaces the older one. Said once in the log (and again
+    if it changes); while none is known, unregistered depth is refused as before."""
+
+    def __init__(self, assembler: InputAssembler, log: Callable[[str, str], None]):
+        self.assembler = assembler
+        self.log = log
+        self.edges: dict[str, tuple[str, Extrinsic]] = {}   # child frame -> (parent frame, child -> parent)
+        self.frames = {"depth": "", "color": ""}
+        self.extrinsic: Extrinsic | None = None
+        self.messages = 0
+
+    def on_tf_static(self, msg: Any) -> None:
+        self.messages += 1
+        for parent, child, T in msgconv.transforms_from_tf_message(msg):  # PwsError when malformed
+            self.edges[child] = (parent, T)
+        self._resolve()
+
+    def saw(self, stream: str, msg: Any) -> None:
+        """Note the frame id of a depth or colour image (looked up again when it changes)."""
+        frame = str(msg.header.frame_id or "").lstrip("/")
+        if frame != self.frames[stream]:
+            self.frames[stream] = frame
+            self._resolve()
+
+    def _resolve(self) -> None:
+        d, c = self.frames["depth"], self.frames["color"]
+        if not (d and c and d != c and self.edges):
+            return
+        found = chain_transform([(p, child, T) for child, (p, T) in self.edges.items()], d, c)
+        if found is None or (self.extrinsic is not None and self._same(found, self.extrinsic)):
+            return
+        found = Extrinsic(found.rotation, found.translation, f"{TF_STATIC_TOPIC}: {d!r} -> {c!r}")
+        self.extrinsic = found
+        self.assembler.set_extrinsic(found)
+        self.log("info", f"depth frame {d!r} is not the colour frame {c!r}: depth is registered into the colour camera "
+                         f"with the extrinsic {found.describe()}")
+
+    @staticmethod
+    def _same(a: Extrinsic, b: Extrinsic) -> bool:
+        return bool((a.rotation == b.rotation).all() and (a.translation == b.translation).all())
+
+
 class HealthPublisher:
     """Publishes ``<node>: health`` on ``/diagnostics`` every ``health_period_s``."""
 
@@ -216,9 +279,14 @@ class InputFrontend:
         mode = cfg.input_mode
         if mode in ("auto", "pointcloud2"):
             self.subs.append(ctx.subscription(T.PointCloud2, cfg.points_topic, self._wrap(self.assembler.on_points)))
+        self.static_tf = StaticExtrinsic(self.assembler, ctx.log)
         if mode in ("auto", "rgbd"):
-            self.subs.append(ctx.subscription(T.Image, cfg.depth_topic, self._wrap(self.assembler.on_depth)))
-            self.subs.append(ctx.subscription(T.Image, cfg.color_topic, self._wrap(self.assembler.on_color)))
+            self.subs.append(ctx.subscription(T.Image, cfg.depth_topic, self._wrap(self.assembler.on_depth, "depth")))
+            self.subs.append(ctx.subscription(T.Image, cfg.color_topic, self._wrap(self.assembler.on_color, "color")))
+            # the depth -> colour extrinsic of unregistered depth (latched: reliable, transient local);
+            # rclpy_types always has TFMessage, an in-memory test context may leave it out
+            if getattr(T, "TFMessage", None) is not None:
+                self.subs.append(ctx.subscription(T.TFMessage, TF_STATIC_TOPIC, self._on_tf_static, kind="tf_static", depth=100))
         # CameraInfo is needed by both modes (optional for organized clouds)
         self.subs.append(ctx.subscription(T.CameraInfo, cfg.camera_info_topic, self._wrap(self.assembler.on_info)))
         dinfo = depth_info_topic(cfg) if mode in ("auto", "rgbd") else ""
@@ -228,10 +296,18 @@ class InputFrontend:
         ctx.log("info", f"input mode {mode}: listening on {', '.join(ctx.resolve(t) for t in topics)} "
                         f"+ {ctx.resolve(cfg.camera_info_topic)}" + (f" (depth camera info {ctx.resolve(dinfo)})" if dinfo else ""))
 
-    def _wrap(self, handler: Callable[[Any], RawFrame | None]) -> Callable[[Any], None]:
+    def _on_tf_static(self, msg: Any) -> None:
+        try:
+            self.static_tf.on_tf_static(msg)
+        except PwsError as exc:
+            self.throttle(self.ctx.log, "warn", f"{TF_STATIC_TOPIC}: {exc}")
+
+    def _wrap(self, handler: Callable[[Any], RawFrame | None], image: str = "") -> Callable[[Any], None]:
         def cb(msg: Any) -> None:
             self.received += 1
             try:
+                if image:
+                    self.static_tf.saw(image, msg)
                 frame = handler(msg)
             except PwsError as exc:
                 self.throttle(self.ctx.log, "warn", f"input: {exc}")

@@ -3,16 +3,19 @@ only inside functions, so they stay importable (and testable) where ROS 2 is not
 from __future__ import annotations
 
 import array
+import os
+import sys
 import threading
 import time
 from types import SimpleNamespace
-from typing import Any, Callable
+from typing import Any, Callable, NoReturn
 
 import numpy as np
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import NameValidationException, ParameterException
+from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_policy_name_from_kind,
                        qos_profile_system_default)
@@ -21,7 +24,7 @@ from ..bridge.config import PwsConfig, check_consistency, config_from_params
 from ..bridge.params import SPECS, ParamSpec, spec_table, validate_param
 from ..bridge.msgtypes import MESSAGE_TYPES
 from ..core.errors import PwsError
-from ._common import ShutdownSafePublisher
+from ._common import TF_MESSAGE_TYPE, ShutdownSafePublisher, still_running_workers
 
 try:  # Iron and later
     from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
@@ -41,7 +44,7 @@ def rclpy_types() -> SimpleNamespace:
     import importlib
 
     ns = SimpleNamespace(flavour="rclpy")
-    for attr, full in MESSAGE_TYPES.items():
+    for attr, full in {**MESSAGE_TYPES, "TFMessage": TF_MESSAGE_TYPE}.items():  # + /tf_static, read by the nodes
         pkg, _, name = full.split("/")
         try:
             setattr(ns, attr, getattr(importlib.import_module(f"{pkg}.msg"), name))
@@ -57,7 +60,11 @@ def rclpy_types() -> SimpleNamespace:
 
 def qos(kind: str, depth: int) -> QoSProfile:
     """``sensor_data`` (best effort, volatile: matches reliable and best-effort publishers),
-    ``reliable``, ``best_effort`` or ``system_default`` with a KEEP_LAST ``depth``."""
+    ``reliable``, ``best_effort``, ``system_default`` or ``tf_static`` (reliable, transient local: what
+    tf2's static broadcaster latches) with a KEEP_LAST ``depth``."""
+    if kind == "tf_static":
+        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(depth), reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
     if kind == "system_default":
         p = QoSProfile(depth=int(depth))
         p.reliability = qos_profile_system_default.reliability
@@ -244,8 +251,9 @@ class NodeContext:
 
 # ---- running ------------------------------------------------------------------------------
 
-def run(node_name: str, factory: Callable[[Node], Any], args: list[str] | None = None) -> int:
-    """``rclpy.init``, create the node, build the logic with ``factory(node)``, spin, shut down.
+def run(node_name: str, factory: Callable[[Node], Any], args: list[str] | None = None) -> NoReturn:
+    """``rclpy.init``, create the node, build the logic with ``factory(node)``, spin, shut down, and end
+    the process (``os._exit`` with the exit status: a node executable's ``main`` only).
 
     A PwsError at start-up (bad parameter, missing model ...) is logged as FATAL; exit status 2.
     """
@@ -272,7 +280,16 @@ def run(node_name: str, factory: Callable[[Node], Any], args: list[str] | None =
         if logic is not None and hasattr(logic, "close"):
             logic.close()
         node.destroy_node()
+        busy = still_running_workers()
+        if busy:  # said by name after destroy_node: rosout cannot publish once SIGINT shut the context down
+            get_logger(node_name).info(f"shutdown: the frame in flight is abandoned ({', '.join(busy)} still busy)")
         rclpy.try_shutdown()
-    return code
+    # The node's process ends here, without the interpreter's teardown: with a worker still inside torch
+    # (shutdown is polled between axes) that teardown aborts ("terminate called without an active
+    # exception", SIGABRT), and on a loaded machine it can outlast the 5 s ros2 launch grants after
+    # SIGINT before escalating to SIGTERM (both logged as ERROR). Nothing is left to flush but stdio.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 

@@ -40,6 +40,7 @@ class CertifierNode:
         self.assembler = PartitionAssembler(timeout_s=cfg.assembly_timeout_s, max_pending=cfg.max_pending_frames,
                                             on_time_jump=jump_logger(ctx))
         self.bundles: OrderedDict[int, scheme.PlanBundle] = OrderedDict()
+        self.replanned: set[int] = set()  # released stamps planned again, not yet flowing
         self.throttle = Throttle()
         self.certified = 0
         self.bad_messages = 0
@@ -65,10 +66,12 @@ class CertifierNode:
         self.throttle(self.ctx.log, "warn", f"ignoring {what}: {exc}", key=what)
 
     def _start(self, stamp_ns: int) -> None:
-        """Tell the assembler what to expect once data for ``stamp_ns`` starts flowing."""
+        """Tell the assembler what to expect once data for ``stamp_ns`` starts flowing (a plan the
+        projector dropped by its online policy never opens a set that would time out as an ERROR)."""
         bundle = self.bundles.get(stamp_ns)
-        if bundle is not None and not self.assembler.knows(stamp_ns):
-            self.assembler.expect(stamp_ns, bundle.expected(), info=bundle)
+        if bundle is not None and (not self.assembler.knows(stamp_ns) or stamp_ns in self.replanned):
+            self.replanned.discard(stamp_ns)
+            self.assembler.expect(stamp_ns, bundle.expected(), info=bundle)  # a released stamp planned again: a new pass
 
     def _on_plan(self, msg: Any) -> None:
         try:
@@ -83,9 +86,11 @@ class CertifierNode:
             return
         self.bundles[S] = bundle
         while len(self.bundles) > MAX_BUNDLES:
-            self.bundles.popitem(last=False)
-        if self.assembler.knows(S):  # frames arrived before their plan
+            self.replanned.discard(self.bundles.popitem(last=False)[0])
+        if S in self.assembler.pending():  # frames arrived before their plan
             self.assembler.expect(S, bundle.expected(), info=bundle)
+        elif self.assembler.knows(S):  # released before: the stamp came again (a looped bag), once its data flows
+            self.replanned.add(S)
 
     def _on_frame(self, msg: Any) -> None:
         try:
