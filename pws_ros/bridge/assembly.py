@@ -83,6 +83,8 @@ class PartitionAssembler(Timeline):
     ``jump_back_tolerance_ns`` (default 1 s): then time jumped back (a looped bag, a restarted
     driver), the pending sets are released as failed, the released stamps are forgotten,
     ``time_jumps`` + 1 and ``on_time_jump(text)`` is called once, so the new pass is assembled again.
+    A plan (:meth:`expect`) for a stamp already released is such a jump too: the planner plans each
+    input frame once, so the stamp came again (a looped bag shorter than the tolerance).
     """
 
     def __init__(self, timeout_s: float = 10.0, max_pending: int = 4, clock: Callable[[], float] = time.monotonic,
@@ -105,8 +107,9 @@ class PartitionAssembler(Timeline):
         self.completed = 0     # axis sets released complete
 
     # -- input --
-    def _frame(self, stamp_ns: int) -> _Frame | None:
-        self._jumped_back(self._newest, stamp_ns, "partition assembly", self._restart)
+    def _frame(self, stamp_ns: int, plan: bool = False) -> _Frame | None:
+        self._jumped_back(self._newest, stamp_ns, "partition assembly", self._restart,
+                          repeat=plan and stamp_ns in self._released)
         self._newest = stamp_ns if self._newest is None else max(self._newest, stamp_ns)
         if stamp_ns in self._released:
             self.late += 1
@@ -139,7 +142,7 @@ class PartitionAssembler(Timeline):
     def expect(self, stamp_ns: int, axes: dict[str, int | str], info: Any = None, axis_info: dict[str, Any] | None = None) -> None:
         """The plan of input frame ``stamp_ns``: ``{axis: frame count}`` or ``{axis: "error text"}``."""
         with self._lock:
-            fr = self._frame(int(stamp_ns))
+            fr = self._frame(int(stamp_ns), plan=True)
             if fr is None:
                 return
             fr.expected_axes = list(axes)

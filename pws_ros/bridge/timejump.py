@@ -30,10 +30,12 @@ class Timeline:
         self.on_time_jump = on_time_jump
         self.time_jumps = 0
 
-    def _jumped_back(self, newest_ns: int | None, stamp_ns: int, what: str, reset: Callable[[int], None]) -> bool:
-        """When ``stamp_ns`` is older than ``newest_ns`` by more than the tolerance: ``reset(back_ns)``,
-        count the jump and report it once (the text names ``what``); True then, else False."""
-        if newest_ns is None or stamp_ns >= newest_ns - self.jump_back_tolerance_ns:
+    def _jumped_back(self, newest_ns: int | None, stamp_ns: int, what: str, reset: Callable[[int], None],
+                     repeat: bool = False) -> bool:
+        """When ``stamp_ns`` is older than ``newest_ns`` by more than the tolerance, or ``repeat`` (the caller
+        saw this stamp come again: a loop shorter than the tolerance): ``reset(back_ns)``, count the jump
+        and report it once (the text names ``what``); True then, else False."""
+        if newest_ns is None or (stamp_ns >= newest_ns - self.jump_back_tolerance_ns and not repeat):
             return False
         back_ns = newest_ns - stamp_ns
         reset(back_ns)
