@@ -70,6 +70,28 @@ def test_rgbd_pair_waits_for_the_first_camera_info():
     assert raw is not None and raw.stamp_ns == 3 and raw.messages["info"] is not None
 
 
+def test_unregistered_pair_waits_for_the_depth_camera_info():
+    """Depth registered with an extrinsic needs the depth camera's CameraInfo too: a pair matched before
+    it arrives is held and completed by it (it used to be converted at once and refused for good)."""
+    from pws_ros.core.registration import Extrinsic
+
+    asm = InputAssembler(config_from_params({"input_mode": "rgbd", "sync_tolerance_s": 0.0,
+                                             "depth_camera_info_topic": "/camera/depth/camera_info"}))
+    asm.set_extrinsic(Extrinsic(np.eye(3), [0.0, 0.0, 0.0]))
+    assert asm.on_info(info_msg()) is None
+    asm.on_depth(depth_msg(1, frame="depth"))
+    assert asm.on_color(color_msg(1)) is None and asm.waiting_for_info
+    assert "depth camera's CameraInfo (/camera/depth/camera_info)" in asm.waiting_for()
+    raw = asm.on_depth_info(info_msg(cam=CameraIntrinsics(8, 6, 10.0, 10.0, 3.5, 2.5, "depth")))
+    assert raw is not None and raw.stamp_ns == 1 and raw.messages["depth_info"] is not None and not asm.waiting_for_info
+    # without a configured depth CameraInfo topic nothing waits for one
+    plain = InputAssembler(config_from_params({"input_mode": "rgbd", "sync_tolerance_s": 0.0, "depth_camera_info_topic": ""}))
+    plain.set_extrinsic(Extrinsic(np.eye(3), [0.0, 0.0, 0.0]))
+    plain.on_info(info_msg())
+    plain.on_depth(depth_msg(1, frame="depth"))
+    assert plain.on_color(color_msg(1)) is not None
+
+
 def test_stamp_synced_camera_info():
     asm = InputAssembler(config_from_params({"input_mode": "rgbd", "camera_info_sync": "stamp", "sync_tolerance_s": 0.0}))
     asm.on_depth(depth_msg(5))

@@ -27,7 +27,7 @@ from ..core.cloud import Cloud
 from ..core.errors import require
 from ..core.registration import Extrinsic
 from . import cloudconv, msgconv
-from .config import PwsConfig, resolve_path
+from .config import PwsConfig, depth_info_topic, resolve_path
 from .sync import StampMatcher
 
 
@@ -72,9 +72,11 @@ class InputAssembler:
         self.frames = 0         # complete frames produced
         self._last_stamp: int | None = None
         self.locked_source: str | None = None if self.mode == "auto" else self.mode
-        # a depth + colour pair matched before any CameraInfo arrived (camera_info_sync: latest):
-        # held (the newest one only) and completed by the first CameraInfo instead of being lost
+        # a depth + colour pair matched before the CameraInfo it needs arrived (camera_info_sync: latest;
+        # and the depth camera's, where depth must be registered): held (the newest one only) and
+        # completed by that CameraInfo instead of being lost
         self._held: dict[str, Any] | None = None
+        self._depth_info_topic = depth_info_topic(config)
         self.held_replaced = 0
         self.extrinsic: Extrinsic | None = None   # depth -> colour optical frame (registers unregistered depth)
 
@@ -106,8 +108,16 @@ class InputAssembler:
 
     @property
     def waiting_for_info(self) -> bool:
-        """True while a depth + colour pair waits for the first CameraInfo."""
+        """True while a depth + colour pair waits for a CameraInfo (see :meth:`_waits`)."""
         return self._held is not None
+
+    def waiting_for(self) -> str:
+        """What a held pair waits for, in words ("" when none is held)."""
+        if self._held is None:
+            return ""
+        if self.latest_info is None and "info" not in self._held:
+            return f"the colour CameraInfo ({self.config.camera_info_topic})"
+        return f"the depth camera's CameraInfo ({self._depth_info_topic}), needed to register the depth"
 
     def set_extrinsic(self, extrinsic: Extrinsic | None) -> None:
         """The depth -> colour transform used to register depth that is not registered (None: refuse it)."""
@@ -120,14 +130,25 @@ class InputAssembler:
             self.latest_info = msg
             if self.config.camera_info_sync == "stamp" and self._accept_source("rgbd"):
                 return self._match("info", msg)
-            if self._held is not None:
-                msgs, self._held = self._held, None
-                return self._rgbd_frame(msgs)
-            return None
+            return self._release_held()
 
-    def on_depth_info(self, msg: Any) -> None:
+    def on_depth_info(self, msg: Any) -> RawFrame | None:
         with self._lock:
             self.latest_depth_info = msg
+            return self._release_held()
+
+    def _waits(self, msgs: dict[str, Any]) -> bool:
+        """Whether a matched pair still waits for a CameraInfo: the colour camera's (none yet), or the
+        depth camera's where the depth is registered with an extrinsic and that topic is configured."""
+        if "info" not in msgs and self.latest_info is None:
+            return True
+        return self.extrinsic is not None and bool(self._depth_info_topic) and self.latest_depth_info is None
+
+    def _release_held(self) -> RawFrame | None:
+        if self._held is None or self._waits(self._held):
+            return None
+        msgs, self._held = self._held, None
+        return self._rgbd_frame(msgs)
 
     def on_points(self, msg: Any) -> RawFrame | None:
         with self._lock:
@@ -155,7 +176,7 @@ class InputAssembler:
         if got is None:
             return None
         msgs = dict(got.messages)
-        if "info" not in msgs and self.latest_info is None:
+        if self._waits(msgs):
             # CameraInfo often starts a little after the images: hold the newest pair for it
             if self._held is not None:
                 self.held_replaced += 1

@@ -312,6 +312,9 @@ class InputFrontend:
             except PwsError as exc:
                 self.throttle(self.ctx.log, "warn", f"input: {exc}")
                 return
+            if frame is None and image and self.assembler.waiting_for_info:
+                self.throttle(self.ctx.log, "warn", f"input: a depth + colour pair waits for {self.assembler.waiting_for()}; "
+                                                    "nothing is certified until it arrives", key="waiting_for_info")
             if frame is not None:
                 if self.assembler.frames == 1:
                     self.ctx.log("info", f"first input frame from {frame.source}")
