@@ -331,6 +331,11 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, model: LoadedModel, 
     if progress is not None:
         progress(config.n0, total_work)
     target = target_radius(int(counts0[0, label]), int(config.n0), int(config.n), config.sigma, config.alpha, max_anchors)
+    if target <= 0 < max_anchors - 1:
+        # too weak for the whole budget's Bonferroni level: the centre alone (level alpha) may still
+        # certify a small radius, so plan for it (a planning choice: the bound uses the anchors placed)
+        max_anchors = 1
+        target = target_radius(int(counts0[0, label]), int(config.n0), int(config.n), config.sigma, config.alpha, 1)
     t0 = time.perf_counter()
     if target > 0:
         # anchors cover about 2 target radii of rendered path each: refine no farther than the budget reaches
