@@ -34,7 +34,7 @@ from .cloud import Cloud
 from .errors import require
 from .imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, segment_bounds, segment_hulls
 from .model import LoadedModel
-from .coverage import AnchorsRule, cohen_radii, covered_radius, coverage_rule
+from .coverage import AnchorsRule, cohen_radii, covered_radius, coverage_rule, packing_bound
 from .motion import UNITS, parse_axis
 from .partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, Plan, check_radius, validate_grid
 from .result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_NOT_CERTIFIED, Certificate
@@ -378,8 +378,10 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, model: LoadedModel, 
         "anchors": [float(plan.alphas[a]) for a in est_idx], "target_radius": float(target),
         "R_min": float(R.min()), "R_centre": float(R[0]), "segments_covered": int(covered.sum()),
         "max_anchor_dist": float(np.sqrt(D2.min(axis=0).max())) if D2.size else 0.0,
-        # a lower bound on the anchors any rule needs: the rendered path over the covered range / (2 R)
+        # the rendered path over the covered range / (2 R): an estimate of the anchors needed, not a bound (a
+        # flickering path can be long inside one ball); packing_anchor_bound is one (packing_bound)
         "path_length": float(steps.sum()), "path_anchor_bound": float(steps[half].sum() / (2 * max(float(R.max()), 1e-12))),
+        "packing_anchor_bound": packing_bound(frames[(plan.alphas >= -reach) & (plan.alphas <= reach)], float(R.max())),
     }
     t_stats += time.perf_counter() - t1
     timings = dict(timings)

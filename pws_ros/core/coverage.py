@@ -76,6 +76,19 @@ def paper_reach(pair_bound_sq: np.ndarray, R: np.ndarray, centre: int) -> int:
     return j
 
 
+def packing_bound(frames: np.ndarray, radius: float) -> int:
+    """A lower bound on the anchors of radius at most ``radius`` that cover ``frames``: the size of a set of
+    them pairwise at least ``2 radius`` apart (picked greedily in order), since one anchor ``a`` covers
+    ``x`` and ``y`` only if ``|x - y| <= |x - x_a| + |x_a - y| < 2 R_a``."""
+    picked: list[np.ndarray] = []
+    lim = (2.0 * radius) ** 2
+    for x in frames:
+        x = np.asarray(x, dtype=np.float64).reshape(-1)
+        if all(float(np.sum((x - y) ** 2)) >= lim for y in picked):
+            picked.append(x)
+    return len(picked)
+
+
 @dataclass(frozen=True)
 class PaperRule:
     """The paper's rule (module doc). ``covered_count`` = 2 j segments."""
@@ -141,4 +154,4 @@ def coverage_rule(name: str, num_anchors: int = 9):
 
 
 __all__ = ["AnchorsRule", "PairwiseRule", "PaperRule", "anchor_indices", "cohen_radii", "covered_radius", "coverage_rule",
-           "paper_reach", "symmetric_reach"]
+           "packing_bound", "paper_reach", "symmetric_reach"]
