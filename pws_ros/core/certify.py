@@ -34,14 +34,13 @@ from .cloud import Cloud
 from .errors import require
 from .imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, segment_bounds, segment_hulls
 from .model import LoadedModel
-from .coverage import AdaptiveAnchorsRule, cohen_radii, coverage_rule, packing_bound
+from .coverage import COVERAGES, AdaptiveAnchorsRule, cohen_radii, coverage_rule, packing_bound
 from .motion import UNITS, parse_axis
 from .partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, Plan, check_radius, validate_grid
 from .result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_NOT_CERTIFIED, Certificate
 from .smoothing import SmoothedClassifier, bonferroni, clopper_pearson_lower
 
 METHODS = ("pws", "pws_l", "pws_of", "cms")
-COVERAGES = ("paper", "pairwise", "anchors")
 
 
 @dataclass

@@ -36,6 +36,8 @@ import numpy as np
 
 from .smoothing import cohen_radius
 
+COVERAGES = ("paper", "pairwise", "anchors")   # the coverage settings, in the order the bench reports them
+
 
 def cohen_radii(p_a_lower, sigma: float) -> np.ndarray:
     """Cohen radii ``R_i`` of the p_A lower bounds (0 where p_A <= 1/2; finite where p_A = 1)."""
@@ -187,5 +189,5 @@ def coverage_rule(name: str, num_anchors: int = 9, imaging: str = "paper"):
     return rules[name]
 
 
-__all__ = ["AdaptiveAnchorsRule", "AnchorsRule", "PairwiseRule", "PaperRule", "anchor_indices", "cohen_radii", "covered_radius", "coverage_rule",
+__all__ = ["COVERAGES", "AdaptiveAnchorsRule", "AnchorsRule", "PairwiseRule", "PaperRule", "anchor_indices", "cohen_radii", "covered_radius", "coverage_rule",
            "packing_bound", "paper_reach", "symmetric_reach"]
