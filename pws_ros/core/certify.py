@@ -13,9 +13,10 @@ The method on one screen (Theorems 1-3 of the paper with the per-segment bounds 
    rules are objects of :mod:`.coverage`):
    * ``paper``: ``max_i sqrt(B_i / 2) < min_i R_i`` (Theorem 1 with ``B_i`` in place of ``|x_i - x_{i+1}|^2``);
    * ``pairwise``: ``B_i < R_i^2 + R_{i+1}^2``;
-   * ``anchors``: some anchor ``a`` has ``D_i(x_a) < R_a`` (``p_A`` estimated at ``K`` anchors only).
-6. The certified radius is the largest symmetric sub-interval ``[-alpha_j, alpha_j]`` of the grid whose
-   segments are all covered; the certificate holds for ``[-b, b]`` iff it reaches ``b``.
+   * ``anchors``: some anchor ``a`` has ``D_i(x_a) < R_a`` (``p_A`` estimated at ``K`` anchors only; with
+     surfel imaging the anchors are placed from the distance bounds, :class:`.coverage.AdaptiveAnchorsRule`).
+6. The certified radius is the largest ``r`` such that every segment inside ``[-r, r]`` is covered; the
+   certificate holds for ``[-b, b]`` iff it reaches ``b``.
 """
 from __future__ import annotations
 

@@ -15,13 +15,13 @@ on any grid).
   ``B_i < R_i^2 + R_{i+1}^2`` (every ``x`` of it is then within ``R_i`` of ``x_i`` or within ``R_{i+1}``
   of ``x_{i+1}``).
 * :class:`AnchorsRule`: p_A at ``K`` anchor frames only; segment ``i`` is covered by any anchor ``a``
-  with ``D_i(x_a) < R_a`` (every ``x`` of it within ``R_a`` of ``x_a``). The anchors are evenly spread
-  (:func:`anchor_indices`) or, with surfel imaging, placed from the distance bounds before the
-  estimation samples are drawn (:mod:`.anchors`); either way the set is fixed before those samples,
-  so the ``K`` bounds fail together with probability at most ``alpha``.
+  with ``D_i(x_a) < R_a`` (every ``x`` of it within ``R_a`` of ``x_a``); the ``K`` anchors are evenly
+  spread (:func:`anchor_indices`), fixed before any sample is drawn.
 * :class:`AdaptiveAnchorsRule` (``anchors`` with surfel imaging): the anchors rule on at most
   ``num_anchors`` anchors placed from the distance bounds and the ``n0`` selection samples (``K`` = the
-  anchors placed, ``<= num_anchors``); the radius is the covered run around 0 on the refined grid.
+  anchors placed, ``<= num_anchors``); the set is fixed before the estimation samples are drawn, so the
+  ``K`` bounds at ``alpha / K`` stay valid (:mod:`.anchors`). The radius is the covered run around 0
+  on the refined grid.
 
 Every rule covers a segment only if every frame of it lies strictly within the Cohen radius of an
 estimated frame, so the smoothed prediction is constant on the covered interval with probability at
