@@ -93,6 +93,8 @@ def test_every_table_is_filled(smoke_run):
     for r in res["shipped"]:
         assert r["camera"] == [640, 480] and r.get("imaging") == "surfel" and r["anchors"] >= 1, r
         assert r["classifier_calls"] <= 64 + 24 * 256   # the shipped budget: n0 + num_anchors * n
+        # the packing bound is a lower bound on the anchors of any set with these radii, so on these too
+        assert 1 <= r["packing_anchor_bound"] <= r["anchors"], r
     assert [r["axis"] for r in summ["shipped"]] == s["cert_axes"]
     # frames: every planned axis has N for every method
     assert [r["axis"] for r in summ["frames"]] == s["plan_axes"]
@@ -136,8 +138,8 @@ def test_every_table_is_filled(smoke_run):
     assert all("timings" in r for r in sc["vs_image_size"]) and len(sc["vs_image_size"]) >= 1
     assert [r["fraction"] for r in sc["vs_cloud_size"]] == s["scaling_cloud_fractions"]
     assert all(r["planned_partitions"] >= 3 for r in sc["vs_cloud_size"])
-    # claims: all six, with a verdict and evidence
-    assert [c["id"] for c in res["claims"]] == list("abcdef")
+    # claims: the paper's six and the shipped defaults' (g), with a verdict and evidence
+    assert [c["id"] for c in res["claims"]] == list("abcdefg")
     for c in res["claims"]:
         assert c["verdict"] in ("holds", "partly holds", "fails", "inconclusive", "holds (not strictly)") and c["evidence"]
     assert res["full_run_estimate"]["total_seconds"] > 0
@@ -181,8 +183,9 @@ def test_report_has_every_section_and_no_nan(smoke_run):
                  "### Denoiser", "## Scaling", "## Run"):
         assert head in text, head
     assert "nan" not in text.lower().replace("nanoseconds", "")
-    for c in "abcdef":
+    for c in "abcdefg":
         assert f"| ({c}) |" in text
+    assert "## The shipped defaults" in text
 
 
 def test_bench_needs_the_models(tmp_path, capsys):

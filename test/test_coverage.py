@@ -8,7 +8,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pws_ros.core.coverage import AnchorsRule, PairwiseRule, PaperRule, coverage_rule
+import itertools
+
+from pws_ros.core.coverage import (AdaptiveAnchorsRule, AnchorsRule, PairwiseRule, PaperRule, coverage_rule, covered_radius,
+                                   packing_bound)
 from pws_ros.core.errors import PwsError
 
 
@@ -60,5 +63,62 @@ def test_estimation_frames_and_names():
     idx = AnchorsRule(3).estimation_indices(9)
     assert 4 in idx and len(idx) == 3   # the centre is always an anchor
     assert coverage_rule("anchors", 5) == AnchorsRule(5) and coverage_rule("paper").name == "paper"
+    adaptive = coverage_rule("anchors", 5, imaging="surfel")
+    assert isinstance(adaptive, AdaptiveAnchorsRule) and adaptive.adaptive and adaptive.num_anchors == 5
+    assert not any(coverage_rule(c, 5, imaging="paper").adaptive for c in ("paper", "pairwise", "anchors"))
+    assert coverage_rule("pairwise", imaging="surfel") == PairwiseRule()
     with pytest.raises(PwsError, match="unknown coverage rule"):
         coverage_rule("mystery")
+
+
+def ref_covered_radius(covered, alphas):
+    """Largest grid value c (or 0) such that [-c, c] lies in the grid and every segment meeting (-c, c) is covered."""
+    best = 0.0
+    for c in sorted({abs(float(a)) for a in alphas}):
+        if c > alphas[-1] or -c < alphas[0]:
+            continue
+        if all(covered[i] for i in range(len(covered)) if alphas[i] < c and alphas[i + 1] > -c):
+            best = max(best, c)
+    return best
+
+
+@settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), left=st.integers(1, 8), right=st.integers(1, 8), K=st.integers(1, 4))
+def test_covered_radius_and_adaptive_rule_against_loops(seed, left, right, K):
+    rng = np.random.default_rng(seed)
+    # an asymmetric refined grid with alpha = 0 at index `left`
+    alphas = np.concatenate([-np.cumsum(rng.uniform(0.1, 1.0, left))[::-1], [0.0], np.cumsum(rng.uniform(0.1, 1.0, right))])
+    covered = rng.uniform(size=left + right) < 0.8
+    assert covered_radius(covered, alphas, left) == ref_covered_radius(covered, alphas)
+    D2 = rng.uniform(0, 2, (K, left + right))
+    R = rng.uniform(0, 1.5, K)
+    cov_ref = [any(D2[a, i] < R[a] ** 2 for a in range(K)) for i in range(left + right)]
+    radius, cov = AdaptiveAnchorsRule(K).radius(R, D2, alphas, left)
+    assert list(cov) == cov_ref and radius == ref_covered_radius(cov_ref, alphas)
+
+
+def min_cover(points, R):
+    """Fewest of the points whose open balls of radius R contain every point (brute force over subsets)."""
+    n = len(points)
+    for k in range(1, n + 1):
+        for sub in itertools.combinations(range(n), k):
+            if all(any(math.dist(points[p], points[a]) < R for a in sub) for p in range(n)):
+                return k
+    return n
+
+
+@settings(max_examples=100, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 7), R=st.floats(0.05, 2.0))
+def test_packing_bound_is_a_lower_bound(seed, n, R):
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(0, 3, (n, 2, 1, 1)).astype(np.float32)   # frames: (n, C, H, W)
+    flat = [tuple(float(v) for v in p.reshape(-1)) for p in pts]
+    k = packing_bound(pts, R)
+    assert 1 <= k <= min_cover(flat, R)
+
+
+def test_packing_bound_exact_on_a_spaced_line():
+    pts = np.arange(6, dtype=np.float32).reshape(6, 1, 1, 1)      # spacing 1
+    assert packing_bound(pts, 0.5) == 6                           # no ball of radius 0.5 holds two of them
+    assert packing_bound(pts, 0.51) == 3                          # 0, 2, 4 are >= 1.02 apart; 1 ball per pair
+    assert packing_bound(pts[:0], 1.0) == 0

@@ -15,14 +15,8 @@ from ..core.partition import plan_partitions
 from ..core.render import Renderer
 from ..core.smoothing import SmoothedClassifier
 from .settings import scene_ids
-from .grids import grid_plan, timing_of
+from .grids import PLAN_CAP, grid_plan, timing_of
 from .machine import PeakMemory
-
-PLAN_CAP = 10_000_000          # larger plans are reported as "> PLAN_CAP" (the grid alone would not fit)
-RUN_QUANTILES = (0.0, 1e-4, 1e-3, 1e-2, 0.5)
-PLAN_METHODS = ("pws", "pws_l", "pws_of")
-CERT_METHODS = ("pws", "pws_l", "pws_of")
-COVERAGE_RULES = ("paper", "pairwise", "anchors")
 
 
 class Ablations:

@@ -12,8 +12,6 @@ import numpy as np
 import torch
 
 
-PLAN_CAP = 10_000_000          # larger plans are reported as "> PLAN_CAP" (the grid alone would not fit)
-
 
 def _rss_bytes() -> int | None:
     try:

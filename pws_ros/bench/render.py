@@ -179,6 +179,8 @@ def render_markdown(res: dict, summ: dict, cl: list[dict], est: dict, plots: lis
              + f" (batch {s['batch_size']}).\n")
     # claims
     L.append("## The paper's claims on our world\n")
+    L.append(f"(a)-(f): the paper's imaging (one point, one pixel) rendered at the classifier's {w}×{h}, as the paper does; "
+             "(g): the shipped defaults (surfel imaging, 640×480 camera), see the next section.\n")
     L.append(table(["", "claim", "verdict", "evidence"], [[f"({c['id']})", c["claim"], f"**{c['verdict']}**", c["evidence"]] for c in cl]))
     L.append("")
     for c in cl:
@@ -187,7 +189,7 @@ def render_markdown(res: dict, summ: dict, cl: list[dict], est: dict, plots: lis
     L.append("")
     # table 1
     L.extend(render_shipped(summ.get("shipped") or []))
-    L.append("## Frames needed per certificate (Table 1 analogue)\n")
+    L.append("## Frames needed per certificate (Table 1 analogue, paper imaging)\n")
     L.append(f"Planned number of partitions N (median [min–max] over scenes, planning only). PwS: entire dense cloud, exact "
              f"consistent intervals; PwS-L / PwS-OF: one-frame cloud. Ratio: median N / {PAPER_CMS_SAMPLES:,} (the CMS sample count "
              f"of the paper's Table 1; this run's CMS used {s['cms_n0'] + s['cms_n']}). Paper (MetaRoom): tz 10 mm 3.5k / 5.1k / 5.9k, "
@@ -215,7 +217,7 @@ def render_markdown(res: dict, summ: dict, cl: list[dict], est: dict, plots: lis
                         + [fmt_n(r["partitions_at_quantile"]["0.001"]), fmt_n(r["partitions_at_quantile"]["0.01"])] for r in rl]))
     L.append("\n![frames](frames.png)\n")
     # table 2
-    L.append("## Certified accuracy at the paper's radii (Tables 2-3 analogue)\n")
+    L.append(f"## Certified accuracy at the paper's radii (Tables 2-3 analogue, paper imaging at {w}×{h})\n")
     L.append("Fraction of scenes whose smoothed prediction is correct and certified on the whole interval. The paper rule is "
              "decided on the pairwise run's own counts and bounds (identical to `certify(coverage='paper')`).\n")
     hdr = ["method", "coverage"] + [f"{a} ±{radius_str(a, PAPER_RADIUS[a])}" for a in s["cert_axes"]]

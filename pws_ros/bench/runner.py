@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from ..core.certify import CertifyConfig, certify, certify_rendered
+from ..core.coverage import COVERAGES
 from ..core.bounds import render_plan
 from ..core.cloud import Cloud
 from ..core.errors import PwsError, require
@@ -37,15 +38,13 @@ from ..core.partition import DEFAULT_DELTA_PX, Plan, consistent_runs, plan_parti
 from ..core.render import resolve_device
 from .settings import BenchSettings, scene_ids
 from .ablations import Ablations
-from .grids import capped_plan, paper_rule, timing_of
+from .grids import PLAN_CAP, capped_plan, paper_rule, timing_of
 from .machine import PeakMemory, display_path, machine_info, sha256_16
 from .shipped import stage_shipped
 
-PLAN_CAP = 10_000_000          # larger plans are reported as "> PLAN_CAP" (the grid alone would not fit)
 RUN_QUANTILES = (0.0, 1e-4, 1e-3, 1e-2, 0.5)
 PLAN_METHODS = ("pws", "pws_l", "pws_of")
 CERT_METHODS = ("pws", "pws_l", "pws_of")
-COVERAGE_RULES = ("paper", "pairwise", "anchors")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -271,7 +270,7 @@ class Bench(Ablations):
                     plan = self.plans.get((i, axis, method))
                     cloud = v.dense if method == "pws" else v.one_frame
                     if plan is None:
-                        for cov in COVERAGE_RULES:
+                        for cov in COVERAGES:
                             records.append({**head, "method": method, "coverage": cov, "status": "error", "certified": False,
                                             "correct": False, "radius": 0.0, "error": "no plan (planning failed)"})
                         continue
@@ -281,7 +280,7 @@ class Bench(Ablations):
                                                             plan_seconds=float(plan.details.get("plan_seconds", 0.0)))
                     except PwsError as exc:
                         recs, rendered = [{"coverage": c, "status": "error", "certified": False, "radius": 0.0, "label": -1,
-                                           "error": str(exc)} for c in COVERAGE_RULES], None
+                                           "error": str(exc)} for c in COVERAGES], None
                     if method == "pws_of" and rendered is not None:
                         self.rendered[(i, axis, method)] = rendered
                     for r in recs:

@@ -13,35 +13,35 @@ The method on one screen (Theorems 1-3 of the paper with the per-segment bounds 
    rules are objects of :mod:`.coverage`):
    * ``paper``: ``max_i sqrt(B_i / 2) < min_i R_i`` (Theorem 1 with ``B_i`` in place of ``|x_i - x_{i+1}|^2``);
    * ``pairwise``: ``B_i < R_i^2 + R_{i+1}^2``;
-   * ``anchors``: some anchor ``a`` has ``D_i(x_a) < R_a`` (``p_A`` estimated at ``K`` anchors only).
-6. The certified radius is the largest symmetric sub-interval ``[-alpha_j, alpha_j]`` of the grid whose
-   segments are all covered; the certificate holds for ``[-b, b]`` iff it reaches ``b``.
+   * ``anchors``: some anchor ``a`` has ``D_i(x_a) < R_a`` (``p_A`` estimated at ``K`` anchors only; with
+     surfel imaging the anchors are placed from the distance bounds, :class:`.coverage.AdaptiveAnchorsRule`).
+6. The certified radius is the largest ``r`` such that every segment inside ``[-r, r]`` is covered; the
+   certificate holds for ``[-b, b]`` iff it reaches ``b``.
 """
 from __future__ import annotations
 
 import math
 import time
 from dataclasses import asdict, dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import torch
 
-from .anchors import REFINE_FRACTION, place_anchors, refine_plan, target_radius
+from .anchors import REFINE_FRACTION, refine_plan, target_radius
 from .bounds import SegmentValues
 from .camera import CameraIntrinsics
 from .cloud import Cloud
 from .errors import require
 from .imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, segment_bounds, segment_hulls
 from .model import LoadedModel
-from .coverage import AnchorsRule, cohen_radii, covered_radius, coverage_rule
+from .coverage import COVERAGES, AdaptiveAnchorsRule, cohen_radii, coverage_rule, packing_bound
 from .motion import UNITS, parse_axis
 from .partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, Plan, check_radius, validate_grid
 from .result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_NOT_CERTIFIED, Certificate
 from .smoothing import SmoothedClassifier, bonferroni, clopper_pearson_lower
 
 METHODS = ("pws", "pws_l", "pws_of", "cms")
-COVERAGES = ("paper", "pairwise", "anchors")
 
 
 @dataclass
@@ -159,12 +159,14 @@ def certify(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, axis: str,
     timings = {"plan": t_plan, "render": 0.0}
     renderer = make_renderer(cloud, imaging, axis, device=config.device,
                              alpha_range=(float(plan.alphas[0]), float(plan.alphas[-1])))
-    if imaging.kind == "surfel" and config.coverage == "anchors":
-        cert = _certify_anchored(renderer, plan, model, config, denoiser, progress, method, timings, t_start, plan_out)
+    rule = coverage_rule(config.coverage, config.num_anchors, imaging.kind)
+    if rule.adaptive:
+        cert = _certify_anchored(renderer, plan, rule, model, config, denoiser, progress, method, timings, t_start, plan_out)
     else:
         values = segment_bounds(renderer, cloud, imaging, plan.alphas, max_bytes=bounds_bytes(config))
         timings["bounds"] = time.perf_counter() - t0
-        cert = _certify_stream(renderer, plan, values, model, config, denoiser, progress, method, timings, t_start)
+        cert = _certify_stream(renderer.render_batch, renderer.iter_frames(plan.alphas, chunk=config.chunk), plan, values,
+                               rule, model, config, denoiser, progress, method, timings, t_start)
         if plan_out is not None:
             plan_out.append(plan)
     cert.bounds["imaging"] = imaging.to_dict()
@@ -183,29 +185,27 @@ def certify_rendered(rendered, model: LoadedModel, config: CertifyConfig | None 
             f"{frames.shape[0]} frames for a plan of {rendered.plan.num_partitions} partitions: refusing to certify an incomplete partition set")
     model.check_input_size(int(frames.shape[1]), int(frames.shape[2]), what="frame")
 
-    class _Given:
-        def iter_frames(self, alphas, chunk=None):
-            step = int(chunk or 128)
-            for s in range(0, len(alphas), step):
-                yield s, frames[s : s + step]
+    step = int(config.chunk or 128)
 
-        def render_batch(self, alphas):
-            idx = np.searchsorted(rendered.plan.alphas, np.asarray(alphas))
-            return frames[torch.as_tensor(idx)]
+    def frames_at(alphas):
+        return frames[torch.as_tensor(np.searchsorted(rendered.plan.alphas, np.asarray(alphas)))]
 
-    cert = _certify_stream(_Given(), rendered.plan, rendered.values, model, config, denoiser, progress,
-                           rendered.plan.method, {"plan": 0.0, "render": 0.0}, t_start)
+    chunks = ((s, frames[s : s + step]) for s in range(0, len(frames), step))
+    cert = _certify_stream(frames_at, chunks, rendered.plan, rendered.values, coverage_rule(config.coverage, config.num_anchors),
+                           model, config, denoiser, progress, rendered.plan.method, {"plan": 0.0, "render": 0.0}, t_start)
     cert.imaging = str(rendered.plan.details.get("imaging", "paper"))
     return cert
 
 
-def _certify_stream(renderer, plan: Plan, values: SegmentValues, model: LoadedModel, config: CertifyConfig, denoiser,
-                    progress, method: str, timings: dict[str, float], t_start: float) -> Certificate:
+def _certify_stream(frames_at: Callable, chunks: Iterator, plan: Plan, values: SegmentValues, rule, model: LoadedModel,
+                    config: CertifyConfig, denoiser, progress, method: str, timings: dict[str, float],
+                    t_start: float) -> Certificate:
+    """Certify with a rule of fixed estimation frames (:mod:`.coverage`): ``frames_at(alphas)`` renders
+    frames, ``chunks`` yields ``(start, frames)`` over the whole grid in order."""
     N = plan.num_partitions
     centre = int(np.searchsorted(plan.alphas, 0.0))
     require(plan.alphas[centre] == 0.0, "plan grid lacks alpha = 0")
     sc = SmoothedClassifier(model, config.sigma, batch_size=config.batch_size, seed=config.seed, denoiser=denoiser)
-    rule = coverage_rule(config.coverage, config.num_anchors)
     anchors = rule.uses_anchor_distances
     est_idx = rule.estimation_indices(N)
     m_bounds = len(est_idx)
@@ -222,7 +222,7 @@ def _certify_stream(renderer, plan: Plan, values: SegmentValues, model: LoadedMo
     t_stats = 0.0
     # 1. selection at alpha = 0
     t0 = time.perf_counter()
-    x0 = renderer.render_batch(np.array([0.0]))
+    x0 = frames_at(np.array([0.0]))
     t_render += time.perf_counter() - t0
     counts0 = sc.sample_counts(x0, int(config.n0))
     label = int(torch.argmax(counts0[0]).item())
@@ -235,14 +235,14 @@ def _certify_stream(renderer, plan: Plan, values: SegmentValues, model: LoadedMo
     D2 = None
     if anchors:
         t0 = time.perf_counter()
-        anchor_frames = renderer.render_batch(plan.alphas[est_idx]).cpu().numpy()
+        anchor_frames = frames_at(plan.alphas[est_idx]).cpu().numpy()
         t_render += time.perf_counter() - t0
         D2 = np.zeros((m_bounds, N - 1))
         c = sc.sample_counts(torch.as_tensor(anchor_frames), int(config.n))
         k_est[:] = c[:, label].numpy()
         tick(m_bounds * config.n)
     prev = None
-    it = renderer.iter_frames(plan.alphas, chunk=config.chunk)
+    it = iter(chunks)
     while True:
         t0 = time.perf_counter()
         try:
@@ -311,7 +311,8 @@ def _conclude(plan: Plan, centre: int, reach: float, est_pos: dict[int, int], p_
                        reason=reason, seed=int(config.seed))
 
 
-def _certify_anchored(renderer: SurfelRenderer, plan: Plan, model: LoadedModel, config: CertifyConfig, denoiser,
+def _certify_anchored(renderer: SurfelRenderer, plan: Plan, rule: AdaptiveAnchorsRule, model: LoadedModel,
+                      config: CertifyConfig, denoiser,
                       progress, method: str, timings: dict[str, float], t_start: float,
                       plan_out: list | None = None) -> Certificate:
     """Anchors from the distance profile (:mod:`.anchors`): the selection samples at alpha = 0 predict a target
@@ -364,7 +365,7 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, model: LoadedModel, 
     def row(jj: int, i0: int = 0, i1: int | None = None) -> np.ndarray:
         return hulls.dist_sq(frames[jj], slice(i0, i1))
 
-    est_idx = np.array(place_anchors(row, plan.alphas, centre, target ** 2, max_anchors, partial=True), dtype=np.int64)
+    est_idx = rule.place(row, plan.alphas, centre, target)
     t_stats = time.perf_counter() - t1
     K = len(est_idx)
     counts = sc.sample_counts(torch.as_tensor(frames[est_idx]), int(config.n))
@@ -375,17 +376,17 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, model: LoadedModel, 
     p_lower = np.asarray(clopper_pearson_lower(k_est, int(config.n), bonferroni(config.alpha, K)), dtype=np.float64).reshape(-1)
     R = cohen_radii(p_lower, config.sigma)
     D2 = np.stack([row(int(a)) for a in est_idx])
-    covered = AnchorsRule(K).covered(R, anchor_dist_sq=D2)   # the placed anchors: a fixed set (module doc of .anchors)
-    reach = covered_radius(covered, plan.alphas, centre)
+    reach, covered = rule.radius(R, D2, plan.alphas, centre)   # the placed anchors: a fixed set (module doc of .anchors)
     steps = np.sqrt(np.sum((frames[1:].astype(np.float64) - frames[:-1]) ** 2, axis=(1, 2, 3)))
     half = (plan.alphas[:-1] >= -reach) & (plan.alphas[1:] <= reach)
     bounds: dict[str, Any] = {
         "anchors": [float(plan.alphas[a]) for a in est_idx], "target_radius": float(target),
         "R_min": float(R.min()), "R_centre": float(R[0]), "segments_covered": int(covered.sum()),
         "max_anchor_dist": float(np.sqrt(D2.min(axis=0).max())) if D2.size else 0.0,
-        # the rendered path over the covered range / (2 R): the anchors a straight path would need (a
-        # wiggling path can need fewer: a ball of radius R holds more than 2 R of it)
+        # the rendered path over the covered range / (2 R): an estimate of the anchors needed, not a bound (a
+        # flickering path can be long inside one ball); packing_anchor_bound is one (packing_bound)
         "path_length": float(steps.sum()), "path_anchor_bound": float(steps[half].sum() / (2 * max(float(R.max()), 1e-12))),
+        "packing_anchor_bound": packing_bound(frames[(plan.alphas >= -reach) & (plan.alphas <= reach)], float(R.max())),
     }
     t_stats += time.perf_counter() - t1
     timings = dict(timings)

@@ -15,10 +15,18 @@ on any grid).
   ``B_i < R_i^2 + R_{i+1}^2`` (every ``x`` of it is then within ``R_i`` of ``x_i`` or within ``R_{i+1}``
   of ``x_{i+1}``).
 * :class:`AnchorsRule`: p_A at ``K`` anchor frames only; segment ``i`` is covered by any anchor ``a``
-  with ``D_i(x_a) < R_a`` (every ``x`` of it within ``R_a`` of ``x_a``). The anchors are evenly spread
-  (:func:`anchor_indices`) or, with surfel imaging, placed from the distance bounds before the
-  estimation samples are drawn (:mod:`.anchors`); either way the set is fixed before those samples,
-  so the ``K`` bounds fail together with probability at most ``alpha``.
+  with ``D_i(x_a) < R_a`` (every ``x`` of it within ``R_a`` of ``x_a``); the ``K`` anchors are evenly
+  spread (:func:`anchor_indices`), fixed before any sample is drawn.
+* :class:`AdaptiveAnchorsRule` (``anchors`` with surfel imaging): the anchors rule on at most
+  ``num_anchors`` anchors placed from the distance bounds and the ``n0`` selection samples (``K`` = the
+  anchors placed, ``<= num_anchors``); the set is fixed before the estimation samples are drawn, so the
+  ``K`` bounds at ``alpha / K`` stay valid (:mod:`.anchors`). The radius is the covered run around 0
+  on the refined grid.
+
+Every rule covers a segment only if every frame of it lies strictly within the Cohen radius of an
+estimated frame, so the smoothed prediction is constant on the covered interval with probability at
+least ``1 - alpha`` (Bonferroni over the ``K`` bounds). :func:`packing_bound` is a lower bound on the
+anchors any rule with given radii needs.
 """
 from __future__ import annotations
 
@@ -27,6 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .smoothing import cohen_radius
+
+COVERAGES = ("paper", "pairwise", "anchors")   # the coverage settings, in the order the bench reports them
 
 
 def cohen_radii(p_a_lower, sigma: float) -> np.ndarray:
@@ -76,12 +86,26 @@ def paper_reach(pair_bound_sq: np.ndarray, R: np.ndarray, centre: int) -> int:
     return j
 
 
+def packing_bound(frames: np.ndarray, radius: float) -> int:
+    """A lower bound on the anchors of radius at most ``radius`` that cover ``frames``: the size of a set of
+    them pairwise at least ``2 radius`` apart (picked greedily in order), since one anchor ``a`` covers
+    ``x`` and ``y`` only if ``|x - y| <= |x - x_a| + |x_a - y| < 2 R_a``."""
+    picked: list[np.ndarray] = []
+    lim = (2.0 * radius) ** 2
+    for x in frames:
+        x = np.asarray(x, dtype=np.float64).reshape(-1)
+        if all(float(np.sum((x - y) ** 2)) >= lim for y in picked):
+            picked.append(x)
+    return len(picked)
+
+
 @dataclass(frozen=True)
 class PaperRule:
     """The paper's rule (module doc). ``covered_count`` = 2 j segments."""
 
     name = "paper"
     uses_anchor_distances = False
+    adaptive = False
 
     def estimation_indices(self, num_partitions: int) -> np.ndarray:
         return np.arange(num_partitions)
@@ -98,6 +122,7 @@ class PairwiseRule:
 
     name = "pairwise"
     uses_anchor_distances = False
+    adaptive = False
 
     def estimation_indices(self, num_partitions: int) -> np.ndarray:
         return np.arange(num_partitions)
@@ -118,6 +143,7 @@ class AnchorsRule:
     num_anchors: int = 9
     name = "anchors"
     uses_anchor_distances = True
+    adaptive = False
 
     def estimation_indices(self, num_partitions: int) -> np.ndarray:
         return anchor_indices(num_partitions, self.num_anchors)
@@ -130,9 +156,32 @@ class AnchorsRule:
         return symmetric_reach(covered, centre), int(covered.sum())
 
 
-def coverage_rule(name: str, num_anchors: int = 9):
-    """The rule object of a ``coverage`` setting (paper, pairwise, anchors)."""
-    rules = {"paper": PaperRule(), "pairwise": PairwiseRule(), "anchors": AnchorsRule(int(num_anchors))}
+@dataclass(frozen=True)
+class AdaptiveAnchorsRule(AnchorsRule):
+    """The anchors of surfel imaging: at most ``num_anchors`` grid frames placed from the distance bounds
+    and the selection samples (:func:`.anchors.place_anchors`, before the estimation samples are drawn),
+    then covered as :class:`AnchorsRule` with ``K`` = the anchors placed; the radius is
+    :func:`covered_radius` (the grid is refined where frames differ, so it need not be symmetric)."""
+
+    adaptive = True
+
+    def place(self, dist_sq_row, alphas: np.ndarray, centre: int, target: float) -> np.ndarray:
+        """Grid indices of the anchors (the centre first) for the target Cohen radius ``target``."""
+        from .anchors import place_anchors
+
+        return np.array(place_anchors(dist_sq_row, alphas, centre, target ** 2, self.num_anchors, partial=True), dtype=np.int64)
+
+    def radius(self, R: np.ndarray, anchor_dist_sq: np.ndarray, alphas: np.ndarray, centre: int) -> tuple[float, np.ndarray]:
+        """(covered radius, covered segments)."""
+        covered = self.covered(R, anchor_dist_sq=anchor_dist_sq)
+        return covered_radius(covered, alphas, centre), covered
+
+
+def coverage_rule(name: str, num_anchors: int = 9, imaging: str = "paper"):
+    """The rule object of a ``coverage`` setting (paper, pairwise, anchors) under an imaging kind: with
+    surfel imaging the anchors are placed adaptively (:class:`AdaptiveAnchorsRule`)."""
+    anchors = AdaptiveAnchorsRule(int(num_anchors)) if imaging == "surfel" else AnchorsRule(int(num_anchors))
+    rules = {"paper": PaperRule(), "pairwise": PairwiseRule(), "anchors": anchors}
     if name not in rules:
         from .errors import PwsError
 
@@ -140,5 +189,5 @@ def coverage_rule(name: str, num_anchors: int = 9):
     return rules[name]
 
 
-__all__ = ["AnchorsRule", "PairwiseRule", "PaperRule", "anchor_indices", "cohen_radii", "covered_radius", "coverage_rule",
-           "paper_reach", "symmetric_reach"]
+__all__ = ["COVERAGES", "AdaptiveAnchorsRule", "AnchorsRule", "PairwiseRule", "PaperRule", "anchor_indices", "cohen_radii", "covered_radius", "coverage_rule",
+           "packing_bound", "paper_reach", "symmetric_reach"]
