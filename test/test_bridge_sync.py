@@ -80,13 +80,65 @@ def test_matcher_rejects_bad_setup():
         StampMatcher(("a",)).add("x", 0, None)
 
 
+def test_unsynced_streams_pair_as_nearest_once_settled():
+    """A 6 Hz depth and a 10 Hz colour stream, unsynchronised (some pairs within 20 ms, some 26-41 ms
+    apart): each depth frame pairs with its nearest colour frame, decided once later colour and depth
+    frames show that no nearer one can come; pairs within the tolerance still match at once."""
+    m = StampMatcher(("depth", "color"), tolerance_ns=20 * MS, max_skew_ns=200 * MS)
+    depth = [40 + 167 * k for k in range(4)]          # 40, 207, 374, 541
+    color = [100 * k for k in range(10)]              # 0, 100, 200, ...
+    events = sorted([(t, "depth") for t in depth] + [(t, "color") for t in color])
+    got = []
+    for t, s in events:
+        r = m.add(s, t * MS, f"{s[0]}{t}")
+        if r is not None:
+            got.append((r.stamps["depth"] // MS, r.stamps["color"] // MS, t))
+    # the reference: each depth's nearest colour frame (all within 20 ms here but one)
+    want = [(d, min(color, key=lambda c: (abs(c - d), c))) for d in depth]
+    assert [(d, c) for d, c, _t in got] == want and sum(abs(d - c) > 20 for d, c in want) == 3
+    for d, c, t in got:
+        if abs(d - c) <= 20:
+            assert t == max(d, c)                     # matched the moment its second message arrived
+
+
+def test_far_pair_waits_until_settled_or_flushed():
+    m = StampMatcher(("depth", "color"), tolerance_ns=20 * MS, max_skew_ns=200 * MS)
+    assert m.add("color", 1000 * MS, "c") is None
+    assert m.add("depth", 1100 * MS, "d1") is None    # a later colour frame could be nearer: wait
+    assert m.add("depth", 1270 * MS, "d2") is None    # 270 ms: beyond the skew
+    got = m.flush()                                   # the end of the recording: nothing nearer can come
+    assert got is not None and got.messages == {"depth": "d1", "color": "c"}
+    assert m.flush() is None
+    # without max_skew the pair never forms
+    m0 = StampMatcher(("depth", "color"), tolerance_ns=20 * MS)
+    m0.add("color", 1000 * MS, "c")
+    m0.add("depth", 1100 * MS, "d1")
+    assert m0.flush() is None
+    # settled by later messages on both streams: colour 1000 is d1's nearest and d1 is its nearest
+    m = StampMatcher(("depth", "color"), tolerance_ns=20 * MS, max_skew_ns=200 * MS)
+    m.add("color", 1000 * MS, "c")
+    m.add("depth", 1100 * MS, "d1")
+    assert m.add("color", 1250 * MS, "c2") is not None
+
+
+def test_a_nearer_partner_on_the_reference_stream_wins():
+    m = StampMatcher(("depth", "color"), tolerance_ns=20 * MS, max_skew_ns=200 * MS)
+    m.add("depth", 1000 * MS, "d0")
+    m.add("color", 1100 * MS, "c")                    # 100 ms from d0; a later depth may be nearer
+    assert m.add("depth", 1150 * MS, "d1") is None    # 50 ms: nearer, but colour has nothing after 1150 yet
+    got = m.add("color", 1300 * MS, "c2")
+    assert got is not None and got.messages == {"depth": "d1", "color": "c"}
+
+
 @settings(max_examples=50, deadline=None)
-@given(st.lists(st.tuples(st.sampled_from(["a", "b"]), st.integers(0, 50)), max_size=40), st.integers(0, 3), st.integers(1, 5))
-def test_matcher_invariants(events, tol, qsize):
-    """Every match is within tolerance; matched stamps strictly increase per stream within a timeline
-    (a repeated stamp, as in a looped bag, starts a new one); every message is either matched,
+@given(st.lists(st.tuples(st.sampled_from(["a", "b"]), st.integers(0, 50)), max_size=40), st.integers(0, 3), st.integers(1, 5),
+       st.sampled_from([0, 2, 10]))
+def test_matcher_invariants(events, tol, qsize, skew):
+    """Every match is within tolerance (or the skew); matched stamps strictly increase per stream within a
+    timeline (a repeated stamp, as in a looped bag, starts a new one); every message is either matched,
     dropped or still buffered; buffers never exceed the queue size."""
-    m = StampMatcher(("a", "b"), tolerance_ns=tol, queue_size=qsize)
+    m = StampMatcher(("a", "b"), tolerance_ns=tol, queue_size=qsize, max_skew_ns=skew)
+    tol = max(tol, skew)
     last = {"a": -1, "b": -1}
     counts = {"a": 0, "b": 0}
     matched = 0

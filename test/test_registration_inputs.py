@@ -100,7 +100,7 @@ def test_realsense_input_path_gives_a_cloud_instead_of_a_refusal(realsense):
 def test_realsense_replay_registers_and_certifies(realsense, model_path, tmp_path):
     folder, _m = realsense
     logs: list[tuple[str, str]] = []
-    cfg = PwsConfig(model_path=str(model_path), sync_tolerance_s=0.15, **TINY)
+    cfg = PwsConfig(model_path=str(model_path), **TINY)   # the default sync: 20 ms at once, 0.2 s once settled
     res = replay(ReplayOptions(bag=folder, config=cfg, out=tmp_path / "out", log=lambda lv, msg: logs.append((lv, msg))))
     said = [msg for _lv, msg in logs if "depth registered into the colour camera" in msg]
     assert len(said) == 1 and RS_TF[0] in said[0] and RS_TF[1] in said[0]
@@ -108,8 +108,12 @@ def test_realsense_replay_registers_and_certifies(realsense, model_path, tmp_pat
     (rec,) = res.records
     assert rec.input_error is None or rec.input_error == ""
     assert [c.status for c in rec.certificates] != ["error"]
-    # with the default 20 ms tolerance the ~100 ms apart depth and colour never pair: said plainly
-    res = replay(ReplayOptions(bag=folder, config=PwsConfig(model_path=str(model_path), **TINY), write_output=False, quiet=True, log=lambda *a: None))
+    # the pair is 101.6 ms apart (the recording's only colour frame, its nearest depth frame): one WARN says so
+    skew = [msg for lv, msg in logs if "101.6 ms apart" in msg]
+    assert len(skew) == 1 and "sync_max_skew_s" in skew[0]
+    # with sync_max_skew_s 0 only the 20 ms tolerance pairs: they never do, said plainly
+    res = replay(ReplayOptions(bag=folder, config=PwsConfig(model_path=str(model_path), sync_max_skew_s=0.0, **TINY),
+                               write_output=False, quiet=True, log=lambda *a: None))
     assert res.exit_code == 2 and "sync-tolerance" in res.message and "not registered" not in res.message
 
 

@@ -3,7 +3,8 @@
 :class:`InputAssembler` receives the raw input messages (callbacks call ``on_points``, ``on_depth``,
 ``on_color``, ``on_info``, ``on_depth_info``) and returns a :class:`RawFrame` when one input frame is
 complete: a PointCloud2 alone (intrinsics from the latest CameraInfo, the organized grid, or
-``camera_info_file``), or a depth + colour pair matched by stamp within ``sync_tolerance_s`` (plus a
+``camera_info_file``), or a depth + colour pair matched by stamp within ``sync_tolerance_s`` (or, once
+settled, within ``sync_max_skew_s``: unsynchronised drivers; :class:`.sync.StampMatcher`) (plus a
 CameraInfo: the latest one, or stamp-matched with ``camera_info_sync: stamp``). Callbacks only
 buffer; :func:`convert` (the slow part: message -> cloud) runs in the worker on the newest frame only.
 
@@ -39,6 +40,7 @@ class RawFrame:
     stamp_ns: int
     header: Any
     messages: dict[str, Any] = field(default_factory=dict)  # points | depth, color | info, depth_info, extrinsic
+    skew_ns: int = 0                # largest stamp difference between the matched messages (rgbd)
 
 
 @dataclass
@@ -61,7 +63,8 @@ class InputAssembler:
         self.mode = config.input_mode
         self._lock = threading.Lock()
         streams = ("depth", "color") + (("info",) if config.camera_info_sync == "stamp" else ())
-        self.matcher = StampMatcher(streams, tolerance_ns=int(round(config.sync_tolerance_s * 1e9)), queue_size=config.sync_queue_size)
+        self.matcher = StampMatcher(streams, tolerance_ns=int(round(config.sync_tolerance_s * 1e9)), queue_size=config.sync_queue_size,
+                                    max_skew_ns=int(round(config.sync_max_skew_s * 1e9)))
         self.latest_info: Any = None
         self.latest_depth_info: Any = None
         self.fallback: CameraIntrinsics | None = None
@@ -79,6 +82,13 @@ class InputAssembler:
         self._depth_info_topic = depth_info_topic(config)
         self.held_replaced = 0
         self.extrinsic: Extrinsic | None = None   # depth -> colour optical frame (registers unregistered depth)
+
+    def reconfigure(self, config: PwsConfig) -> None:
+        """New parameters at run time (``ros2 param set``): the config and the matcher's tolerances."""
+        with self._lock:
+            self.config = config
+            self.matcher.tolerance_ns = int(round(config.sync_tolerance_s * 1e9))
+            self.matcher.max_skew_ns = int(round(config.sync_max_skew_s * 1e9))
 
     # -- helpers --
     def _accept_source(self, source: str) -> bool:
@@ -171,11 +181,22 @@ class InputAssembler:
                 return None
             return self._match("color", msg)
 
+    def flush(self) -> RawFrame | None:
+        """At the end of the input (a recording): the depth + colour pair that waited to be settled
+        (``sync_max_skew_s``), if any."""
+        with self._lock:
+            if self.locked_source == "pointcloud2":
+                return None
+            return self._matched(self.matcher.flush())
+
     def _match(self, stream: str, msg: Any) -> RawFrame | None:
-        got = self.matcher.add(stream, msgconv.header_stamp_ns(msg), msg)
+        return self._matched(self.matcher.add(stream, msgconv.header_stamp_ns(msg), msg))
+
+    def _matched(self, got: Any) -> RawFrame | None:
         if got is None:
             return None
         msgs = dict(got.messages)
+        msgs["skew_ns"] = max(got.stamps.values()) - min(got.stamps.values())
         if self._waits(msgs):
             # CameraInfo often starts a little after the images: hold the newest pair for it
             if self._held is not None:
@@ -191,8 +212,18 @@ class InputAssembler:
             msgs["depth_info"] = self.latest_depth_info
         if self.extrinsic is not None:
             msgs["extrinsic"] = self.extrinsic
+        skew = int(msgs.pop("skew_ns", 0))
         color = msgs["color"]
-        return self._emit(RawFrame("rgbd", msgconv.header_stamp_ns(color), color.header, msgs))
+        return self._emit(RawFrame("rgbd", msgconv.header_stamp_ns(color), color.header, msgs, skew_ns=skew))
+
+    def skew_warning(self, frame: RawFrame) -> str:
+        """A WARN text for a pair matched beyond ``sync_tolerance_s`` (within ``sync_max_skew_s``), else ""."""
+        if frame.skew_ns <= self.matcher.tolerance_ns:
+            return ""
+        return (f"depth and colour {frame.skew_ns / 1e6:.1f} ms apart (more than sync_tolerance_s = "
+                f"{self.matcher.tolerance_ns / 1e9:g} s) paired as each other's nearest (sync_max_skew_s = "
+                f"{self.matcher.max_skew_ns / 1e9:g} s): the cloud's geometry and colour are that far apart in time, "
+                "so a moving camera certifies a misregistered cloud; sync_max_skew_s: 0 refuses such pairs")
 
 
 def convert(frame: RawFrame, config: PwsConfig, fallback: CameraIntrinsics | None = None) -> InputFrame:

@@ -146,7 +146,12 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("camera_info_file", "", "camera_calibration YAML used when no CameraInfo arrives (unorganized clouds)", read_only=True, nodes=_IN),
     ParamSpec("camera_info_sync", "latest", "CameraInfo pairing: latest (last one received) or stamp (matched like the images)",
               choices=INFO_SYNC, read_only=True, nodes=_IN),
-    ParamSpec("sync_tolerance_s", 0.02, "largest stamp difference between depth, colour (and CameraInfo) of one frame", range=(0.0, 10.0), nodes=_IN, unit="s"),
+    ParamSpec("sync_tolerance_s", 0.02, "depth, colour (and CameraInfo) whose stamps differ by at most this are one frame, matched immediately",
+              range=(0.0, 10.0), nodes=_IN, unit="s"),
+    ParamSpec("sync_max_skew_s", 0.2, "unsynchronised drivers (depth and colour at their own rates): a pair farther apart than "
+              "sync_tolerance_s but within this is matched when neither has a nearer partner (as message_filters' ApproximateTime), "
+              "or at the end of a recording, and logged as a WARN with its skew (the cloud's geometry and colour are then that far "
+              "apart in time); 0 = only sync_tolerance_s", range=(0.0, 10.0), nodes=_IN, unit="s"),
     ParamSpec("sync_queue_size", 10, "messages buffered per input stream for stamp matching", range=(1, 1000), read_only=True, nodes=_IN),
     ParamSpec("require_same_frame", True, "refuse depth and colour with different non-empty frame ids (not registered)", nodes=_IN),
     ParamSpec("min_period_s", 0.0, "skip input frames closer than this to the last accepted one (0 = take every frame the worker can)",

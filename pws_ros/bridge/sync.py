@@ -52,15 +52,25 @@ class StampMatcher(Timeline):
     looped bag, a restarted driver), and the matcher starts over (buffers dropped and counted,
     ``time_jumps`` + 1, ``on_time_jump(text)`` called once) with this message as the first of the new
     timeline.
+
+    With ``max_skew_ns`` above ``tolerance_ns`` (what message_filters' ApproximateTime does for unsynced
+    drivers, e.g. a RealSense whose depth and colour run at different rates), a set whose stamps are
+    farther apart than ``tolerance_ns`` but within ``max_skew_ns`` is matched once it is *settled*: each
+    message is the nearest buffered one to its partner on the other's stream, and each of the two streams
+    has a message at or after its partner's stamp (later messages, being newer, cannot be nearer); or at
+    :meth:`flush` (the end of a recording). Sets within ``tolerance_ns`` match at once, as before, so
+    streams that agree within it are paired exactly as without ``max_skew_ns``.
     """
 
     def __init__(self, streams: Iterable[str], tolerance_ns: int = 20_000_000, queue_size: int = 10,
-                 jump_back_tolerance_ns: int = JUMP_BACK_TOLERANCE_NS, on_time_jump: Callable[[str], None] | None = None):
+                 jump_back_tolerance_ns: int = JUMP_BACK_TOLERANCE_NS, on_time_jump: Callable[[str], None] | None = None,
+                 max_skew_ns: int = 0):
         self.streams = tuple(streams)
         require(len(self.streams) >= 1 and len(set(self.streams)) == len(self.streams), f"streams must be distinct names, got {self.streams}")
         require(int(tolerance_ns) >= 0, f"sync tolerance must be >= 0, got {tolerance_ns} ns")
         require(int(queue_size) >= 1, f"sync queue size must be >= 1, got {queue_size}")
         self.tolerance_ns = int(tolerance_ns)
+        self.max_skew_ns = int(max_skew_ns)
         self._init_timeline(jump_back_tolerance_ns, on_time_jump)
         self.queue_size = int(queue_size)
         self._buffers: dict[str, deque[tuple[int, Any]]] = {s: deque() for s in self.streams}
@@ -105,18 +115,40 @@ class StampMatcher(Timeline):
                 self.dropped[stream] += 1
             return self._try_match()
 
-    def _try_match(self) -> MatchedSet | None:
+    def flush(self) -> MatchedSet | None:
+        """At the end of the input (a recording): the newest set within ``max_skew_ns`` that still waits to
+        be settled, if any (no later message can come to settle it)."""
+        with self._lock:
+            return self._try_match(flush=True)
+
+    def _nearest(self, stream: str, stamp: int) -> tuple[int, int, Any] | None:
+        """(distance, stamp, message) of the buffered message of ``stream`` nearest to ``stamp`` (ties: older)."""
+        best = None
+        for st, m in self._buffers[stream]:
+            d = abs(st - stamp)
+            if best is None or d < best[0]:
+                best = (d, st, m)
+        return best
+
+    def _settled(self, stream: str, ref_stamp: int, stamp: int) -> bool:
+        """Whether the pair (reference ``ref_stamp``, ``stream`` ``stamp``) can no longer be bettered: each is
+        the nearest buffered to the other, and each stream holds a message at or after the other's stamp."""
+        ref = self.reference
+        nearest_ref = self._nearest(ref, stamp)
+        return (nearest_ref is not None and nearest_ref[1] == ref_stamp
+                and self._buffers[stream][-1][0] >= ref_stamp and self._buffers[ref][-1][0] >= stamp)
+
+    def _try_match(self, flush: bool = False) -> MatchedSet | None:
         ref = self._buffers[self.reference]
+        reach = max(self.tolerance_ns, self.max_skew_ns)
         # newest reference message first: the online policy prefers fresh sets
         for ref_stamp, ref_msg in reversed(ref):
             chosen: dict[str, tuple[int, Any]] = {self.reference: (ref_stamp, ref_msg)}
             for s in self.streams[1:]:
-                best = None
-                for st, m in self._buffers[s]:
-                    d = abs(st - ref_stamp)
-                    if d <= self.tolerance_ns and (best is None or d < best[0]):
-                        best = (d, st, m)
-                if best is None:
+                best = self._nearest(s, ref_stamp)
+                if best is None or best[0] > reach:
+                    break
+                if best[0] > self.tolerance_ns and not (flush or self._settled(s, ref_stamp, best[1])):
                     break
                 chosen[s] = (best[1], best[2])
             else:

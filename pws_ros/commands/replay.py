@@ -182,7 +182,11 @@ def register(subparsers) -> None:
     i.add_argument("--depth-info-topic", default=None, help="CameraInfo of the depth stream (depth whose intrinsics differ is refused); "
                    "default: the config's depth_camera_info_topic, else found beside the depth topic; \"\" = no such check")
     i.add_argument("--truth-topic", default=None, help="ground-truth DiagnosticArray topic (default: /pws/ground_truth when present)")
-    i.add_argument("--sync-tolerance", type=float, default=None, help="largest depth/colour stamp difference of one frame, s (default: config, 0.02)")
+    i.add_argument("--sync-tolerance", type=float, default=None, help="depth/colour stamps at most this far apart are one frame, "
+                   "matched immediately, s (default: config, 0.02)")
+    i.add_argument("--sync-max-skew", type=float, default=None, help="unsynchronised drivers: a depth/colour pair farther apart than "
+                   "--sync-tolerance but within this is matched when neither has a nearer partner (or at the end of the "
+                   "recording), with a warning naming the skew, s (default: config, 0.2; 0 = off)")
     i.add_argument("--max-frames", type=int, default=None, metavar="K", help="stop after K input frames")
     i.add_argument("--realtime", action="store_true", help="the live node's online policy: a frame arriving (recorded stamps) while a "
                    "certification would still run waits in a one-frame slot and is dropped if a newer one comes (drops are counted); "
@@ -213,6 +217,7 @@ def build_config(args: argparse.Namespace):
     simple = {"method": "method", "coverage": "coverage", "n0": "n0", "n": "n", "sigma": "sigma", "alpha": "alpha", "seed": "seed",
               "device": "device", "batch_size": "batch_size", "model": "model_path", "classes": "classes_path",
               "denoiser": "denoiser_path", "dense_cloud": "dense_cloud_path", "sync_tolerance": "sync_tolerance_s",
+              "sync_max_skew": "sync_max_skew_s",
               "preview_every": "preview_every", "max_partitions": "max_partitions",
               "min_partitions": "min_partitions", "imaging": "imaging", "border": "border", "render_factor": "render_factor", "anchors": "num_anchors",
               "audit_every": "audit_every"}

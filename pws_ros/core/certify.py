@@ -35,7 +35,7 @@ from .cloud import Cloud
 from .errors import require
 from .imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, segment_bounds, segment_hulls
 from .model import LoadedModel
-from .coverage import COVERAGES, AdaptiveAnchorsRule, cohen_radii, coverage_rule, packing_bound
+from .coverage import COVERAGES, AdaptiveAnchorsRule, cohen_radii, coverage_rule, frontier_reach, packing_bound
 from .motion import UNITS, parse_axis
 from .partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, Plan, check_radius, validate_grid
 from .result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_NOT_CERTIFIED, Certificate
@@ -286,7 +286,7 @@ def _certify_stream(frames_at: Callable, chunks: Iterator, plan: Plan, values: S
 
 def _conclude(plan: Plan, centre: int, reach: float, est_pos: dict[int, int], p_lower: np.ndarray, R: np.ndarray, label: int,
               model: LoadedModel, config: CertifyConfig, method: str, sc: SmoothedClassifier, bounds: dict[str, Any],
-              timings: dict[str, float], t_start: float, frames_rendered: int) -> Certificate:
+              timings: dict[str, float], t_start: float, frames_rendered: int, n_est: int | None = None) -> Certificate:
     """The certificate of a covered interval ``[-reach, reach]`` (``reach`` = ``plan.radius``: certified)."""
     axis = plan.axis
     centre_ok = (R[est_pos[centre]] > 0) if centre in est_pos else False
@@ -305,7 +305,7 @@ def _conclude(plan: Plan, centre: int, reach: float, est_pos: dict[int, int], p_
     return Certificate(axis=axis, unit=UNITS[axis], method=method, coverage=config.coverage,
                        requested_radius=float(plan.radius), status=status, certified=certified, radius=radius,
                        label=label, class_name=_label_name(model, label), p_a_lower=[float(p) for p in p_lower],
-                       sigma=float(config.sigma), n0=int(config.n0), n=int(config.n), alpha=float(config.alpha),
+                       sigma=float(config.sigma), n0=int(config.n0), n=int(config.n if n_est is None else n_est), alpha=float(config.alpha),
                        num_bounds=len(p_lower), num_partitions=plan.num_partitions, delta_alpha=float(plan.delta_alpha),
                        frames_rendered=frames_rendered, classifier_calls=int(sc.calls), bounds=bounds, timings=timings,
                        reason=reason, seed=int(config.seed))
@@ -332,11 +332,15 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, rule: AdaptiveAnchor
     if progress is not None:
         progress(config.n0, total_work)
     target = target_radius(int(counts0[0, label]), int(config.n0), int(config.n), config.sigma, config.alpha, max_anchors)
+    n_est = int(config.n)
     if target <= 0 < max_anchors - 1:
-        # too weak for the whole budget's Bonferroni level: the centre alone (level alpha) may still
-        # certify a small radius, so plan for it (a planning choice: the bound uses the anchors placed)
+        # too weak for the whole budget's Bonferroni level: the centre alone (level alpha), with the whole
+        # estimation budget (num_anchors * n samples), may still certify a small radius, so plan for it
+        # (a planning choice made from the selection samples only: the bound uses the anchors placed and
+        # the sample count fixed here, before any estimation sample is drawn)
+        n_est = int(config.n) * max_anchors
         max_anchors = 1
-        target = target_radius(int(counts0[0, label]), int(config.n0), int(config.n), config.sigma, config.alpha, 1)
+        target = target_radius(int(counts0[0, label]), int(config.n0), n_est, config.sigma, config.alpha, 1)
     t0 = time.perf_counter()
     if target > 0:
         # anchors cover about 2 target radii of rendered path each: refine no farther than the budget reaches
@@ -368,15 +372,29 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, rule: AdaptiveAnchor
     est_idx = rule.place(row, plan.alphas, centre, target)
     t_stats = time.perf_counter() - t1
     K = len(est_idx)
-    counts = sc.sample_counts(torch.as_tensor(frames[est_idx]), int(config.n))
+    counts = sc.sample_counts(torch.as_tensor(frames[est_idx]), n_est)
     k_est = counts[:, label].numpy()
     if progress is not None:
         progress(total_work, total_work)
     t1 = time.perf_counter()
-    p_lower = np.asarray(clopper_pearson_lower(k_est, int(config.n), bonferroni(config.alpha, K)), dtype=np.float64).reshape(-1)
+    p_lower = np.asarray(clopper_pearson_lower(k_est, n_est, bonferroni(config.alpha, K)), dtype=np.float64).reshape(-1)
     R = cohen_radii(p_lower, config.sigma)
     D2 = np.stack([row(int(a)) for a in est_idx])
     reach, covered = rule.radius(R, D2, plan.alphas, centre)   # the placed anchors: a fixed set (module doc of .anchors)
+    t_stats += time.perf_counter() - t1
+    splits: list[float] = []
+    if reach < plan.radius and R[0] > 0:
+        # the covered run stops inside a grid segment: bisect it with the radii now known (frontier_reach)
+        t0 = time.perf_counter()
+        anchor_frames, R2 = frames[est_idx], R ** 2
+
+        def covers(a: float, b: float) -> bool:
+            h = segment_hulls(renderer, np.array([a, b]), max_bytes=bounds_bytes(config))
+            return bool(any(h.dist_sq(y)[0] < r2 for y, r2 in zip(anchor_frames, R2)))
+
+        reach, splits = frontier_reach(covers, plan.alphas, covered, centre)
+        timings = dict(timings, bounds=timings.get("bounds", 0.0) + time.perf_counter() - t0)
+    t1 = time.perf_counter()
     steps = np.sqrt(np.sum((frames[1:].astype(np.float64) - frames[:-1]) ** 2, axis=(1, 2, 3)))
     half = (plan.alphas[:-1] >= -reach) & (plan.alphas[1:] <= reach)
     bounds: dict[str, Any] = {
@@ -387,9 +405,18 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, rule: AdaptiveAnchor
         # flickering path can be long inside one ball); packing_anchor_bound is one (packing_bound)
         "path_length": float(steps.sum()), "path_anchor_bound": float(steps[half].sum() / (2 * max(float(R.max()), 1e-12))),
         "packing_anchor_bound": packing_bound(frames[(plan.alphas >= -reach) & (plan.alphas <= reach)], float(R.max())),
+        "frontier_splits": len(splits),
     }
+    if splits:
+        # the grid the certificate rests on holds the bisection points (self-audits check their segments)
+        alphas = np.union1d(plan.alphas, np.asarray(splits, dtype=np.float64))
+        plan = Plan(plan.method, plan.axis, plan.radius, float(np.diff(alphas).max()), len(alphas), alphas, plan.unit,
+                    dict(plan.details, frontier_splits=len(splits)))
+        centre = int(np.searchsorted(plan.alphas, 0.0))
+        if plan_out is not None:
+            plan_out[-1] = plan
     t_stats += time.perf_counter() - t1
     timings = dict(timings)
     timings.update(render=t_render, inference=sc.inference_seconds, statistics=t_stats)
-    return _conclude(plan, centre, reach, {int(a): i for i, a in enumerate(est_idx)}, p_lower, R, label, model, config,
-                     method, sc, bounds, timings, t_start, frames_rendered=N)
+    return _conclude(plan, centre, reach, {centre: 0}, p_lower, R, label, model, config,
+                     method, sc, bounds, timings, t_start, frames_rendered=N, n_est=n_est)

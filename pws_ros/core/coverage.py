@@ -31,6 +31,7 @@ anchors any rule with given radii needs.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -97,6 +98,60 @@ def packing_bound(frames: np.ndarray, radius: float) -> int:
         if all(float(np.sum((x - y) ** 2)) >= lim for y in picked):
             picked.append(x)
     return len(picked)
+
+
+FRONTIER_SPLITS = 16   # bisections per side of the first uncovered segment once R is known (frontier_reach)
+
+
+def frontier_reach(covers: Callable[[float, float], bool], alphas: np.ndarray, covered: np.ndarray, centre: int,
+                   max_splits: int = FRONTIER_SPLITS) -> tuple[float, list[float]]:
+    """The covered radius after bisecting, on each side, the first segment the grid leaves uncovered.
+
+    ``covers(a, b)`` says whether some estimated frame is within its Cohen radius of every frame of the
+    motion segment ``[a, b]`` (sound bounds of that segment alone). On the right, the first uncovered
+    segment ``[a, b]`` is halved at ``m``: if ``[a, m]`` is covered the covered run reaches ``m`` and
+    ``[m, b]`` is halved next, else ``[a, m]`` is; likewise on the left, at most ``max_splits`` times a
+    side. Returns (the symmetric covered radius on the grid with the bisection points, those points).
+
+    Why it may run after the estimation samples: the ``K`` p_A bounds are fixed (and their Bonferroni
+    level) before any sample is drawn; whether a segment is covered is then a deterministic fact of the
+    sound distance bounds, true on the event that all ``K`` bounds hold, whatever grid it is checked on.
+    So a grid chosen from the estimated radii keeps the frame's risk at ``alpha``.
+    """
+    S = len(covered)
+    points: list[float] = []
+    i = centre
+    while i < S and covered[i]:
+        i += 1
+    right = float(alphas[i])
+    if i < S:
+        a, b = float(alphas[i]), float(alphas[i + 1])
+        for _ in range(int(max_splits)):
+            m = 0.5 * (a + b)
+            if not a < m < b:
+                break
+            points.append(m)
+            if covers(a, m):
+                a = right = m
+            else:
+                b = m
+    i = centre - 1
+    while i >= 0 and covered[i]:
+        i -= 1
+    left = -float(alphas[i + 1])
+    if i >= 0:
+        a, b = float(alphas[i]), float(alphas[i + 1])
+        for _ in range(int(max_splits)):
+            m = 0.5 * (a + b)
+            if not a < m < b:
+                break
+            points.append(m)
+            if covers(m, b):
+                b = m
+                left = -m
+            else:
+                a = m
+    return min(right, left), points
 
 
 @dataclass(frozen=True)
@@ -189,5 +244,6 @@ def coverage_rule(name: str, num_anchors: int = 9, imaging: str = "paper"):
     return rules[name]
 
 
-__all__ = ["COVERAGES", "AdaptiveAnchorsRule", "AnchorsRule", "PairwiseRule", "PaperRule", "anchor_indices", "cohen_radii", "covered_radius", "coverage_rule",
+__all__ = ["COVERAGES", "FRONTIER_SPLITS", "AdaptiveAnchorsRule", "AnchorsRule", "PairwiseRule", "PaperRule", "anchor_indices", "cohen_radii",
+           "covered_radius", "coverage_rule", "frontier_reach",
            "packing_bound", "paper_reach", "symmetric_reach"]

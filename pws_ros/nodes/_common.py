@@ -318,6 +318,9 @@ class InputFrontend:
             if frame is not None:
                 if self.assembler.frames == 1:
                     self.ctx.log("info", f"first input frame from {frame.source}")
+                skew = self.assembler.skew_warning(frame)
+                if skew:
+                    self.throttle(self.ctx.log, "warn", f"input: {skew}", key="sync_skew")
                 self.on_frame(frame)
         return cb
 

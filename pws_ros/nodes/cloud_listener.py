@@ -32,8 +32,7 @@ class CloudListenerNode:
         self.health = HealthPublisher(ctx, self._counters)
 
     def _on_change(self, cfg: Any) -> None:
-        self.frontend.assembler.config = cfg
-        self.frontend.assembler.matcher.tolerance_ns = int(round(cfg.sync_tolerance_s * 1e9))
+        self.frontend.assembler.reconfigure(cfg)
 
     def _process(self, raw: RawFrame) -> None:
         T = self.ctx.types

@@ -46,8 +46,7 @@ class PipelineNode:
                         f"{coverage}device {self.engine.device}")
 
     def _on_change(self, cfg: Any) -> None:
-        self.frontend.assembler.config = cfg
-        self.frontend.assembler.matcher.tolerance_ns = int(round(cfg.sync_tolerance_s * 1e9))
+        self.frontend.assembler.reconfigure(cfg)
         self.pubs.update_axes(cfg.axes)
 
     def _on_frame(self, raw: RawFrame) -> None:

@@ -360,17 +360,25 @@ class Replay:
 
         handlers = {"points": self.assembler.on_points, "depth": self.assembler.on_depth, "color": self.assembler.on_color,
                     "info": self.assembler.on_info, "depth_info": self.assembler.on_depth_info}
-        for role, m, msg, stamp in stamp_ordered(bag, roles, self.warn, copy=copy):
-            if role in self.stamps:
-                self.stamps[role].append(stamp)
+        def messages():
+            for role, m, msg, stamp in stamp_ordered(bag, roles, self.warn, copy=copy):
+                if role in self.stamps:
+                    self.stamps[role].append(stamp)
+                yield handlers[role], msg
+            yield (lambda _none: self.assembler.flush()), None   # the end: a pair that waited to be settled
+
+        for handler, msg in messages():
             try:
-                raw = handlers[role](msg)
+                raw = handler(msg)
             except PwsError as exc:
                 self.problems.append(str(exc))
                 self.warn_once("assemble:" + str(exc), f"input: {exc}")
                 continue
             if raw is None:
                 continue
+            skew = self.assembler.skew_warning(raw)
+            if skew:
+                self.warn_once("sync-skew", f"frame {raw.stamp_ns}: {skew}")
             self.frames_seen += 1
             if self.assembler.locked_source and total_topic and inputs.mode == "auto":
                 t = inputs.points if self.assembler.locked_source == "pointcloud2" else inputs.color

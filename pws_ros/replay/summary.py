@@ -52,12 +52,13 @@ def replay_verdict(rp: Any, inputs: InputTopics) -> tuple[int, str]:
             why.append(problems[0])
         if inputs.mode in ("rgbd", "auto") and inputs.depth:
             gap = closest_gap_ms(rp.stamps["depth"], rp.stamps["color"])
-            tol = rp.config.sync_tolerance_s * 1000.0
+            tol = max(rp.config.sync_tolerance_s, rp.config.sync_max_skew_s) * 1000.0
             if not rp.stamps["depth"] or not rp.stamps["color"]:
                 why.append(f"no {'depth' if not rp.stamps['depth'] else 'colour'} message could be read")
             elif gap is not None and gap > tol:
                 why.append(f"depth and colour stamps never came within sync_tolerance_s = {rp.config.sync_tolerance_s:g} s "
-                           f"(closest pair {gap:.1f} ms apart; see --sync-tolerance)")
+                           f"nor sync_max_skew_s = {rp.config.sync_max_skew_s:g} s (closest pair {gap:.1f} ms apart; "
+                           "see --sync-tolerance and --sync-max-skew)")
         if inputs.mode in ("pointcloud2", "auto") and inputs.points and not rp.stamps["points"]:
             why.append(f"no message on {inputs.points} could be read")
         return 2, "nothing could be certified: no complete input frame" + (": " + "; ".join(why) if why else "")
