@@ -136,3 +136,26 @@ def test_frontier_bisection_widens_a_short_certificate(tiny_model):
     splits = cert.bounds["frontier_splits"]
     assert splits > 0 and plans[-1].details["frontier_splits"] == splits
     assert 0 < cert.radius < 0.3
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), axis=st.sampled_from(("tx", "ty", "tz", "rx", "ry", "rz")))
+def test_segment_hull_of_a_sub_segment_holds_under_brute_force(seed, axis):
+    """The one-segment bounds the bisection uses (set up once over the plan's range, then any sub-segment)
+    contain the brute-force frames of that sub-segment, and equal segment_hulls on it."""
+    from pws_ros.core.imaging import SurfelRenderer, segment_hull, segment_hulls
+
+    rng = np.random.default_rng(seed)
+    cloud = random_cloud(rng, ties=bool(seed % 2))
+    im = make_imaging("surfel", CAM, (3, 4), background=0.5, border=0)
+    r = SurfelRenderer(cloud, im, axis)
+    b = SCALE[axis]
+    hull = segment_hull(r, -b, b)
+    for _ in range(3):
+        lo, hi = np.sort(rng.uniform(-b, b, 2))
+        h = hull(lo, hi)
+        ref = segment_hulls(r, np.array([lo, hi]))
+        assert np.array_equal(h.lo, ref.lo) and np.array_equal(h.hi, ref.hi)
+        for a in [lo, hi, np.nextafter(lo, hi), *rng.uniform(lo, hi, 6)]:
+            f = reference_frame(cloud.points, cloud.colors, im, axis, a)
+            assert np.all(f >= h.lo[0] - 1e-7) and np.all(f <= h.hi[0] + 1e-7), (axis, lo, hi, a)

@@ -218,6 +218,38 @@ def test_samples_are_exactly_frame_plus_seeded_noise():
     assert allx.dtype == torch.float32 and allx.min() < 0 and allx.max() > 1  # no clamping
 
 
+def test_common_noise_samples_are_each_frame_plus_the_same_draws():
+    rec, model = _recording_model()
+    frames = torch.rand(3, 5, 4, 3, generator=torch.Generator().manual_seed(1))
+    sigma, seed, num, bs = 0.7, 5, 7, 3
+    sc = SmoothedClassifier(model, sigma, batch_size=bs, seed=seed)
+    counts = sc.sample_counts(frames, num, common_noise=True)
+    assert counts.shape == (3, 2) and counts.sum(1).tolist() == [num] * 3 and sc.calls == 3 * num
+    g = torch.Generator().manual_seed(seed)
+    chw = frames.permute(0, 3, 1, 2)
+    inputs = iter(rec.inputs)
+    for b in (3, 3, 1):                      # the noise of a batch is drawn once, then serves every frame
+        noise = torch.randn((b, 3, 5, 4), generator=g) * sigma
+        for k in range(3):
+            assert torch.equal(next(inputs), noise + chw[k])
+    assert next(inputs, None) is None
+
+
+def test_common_noise_keeps_each_frames_vote_frequency(threshold_model):
+    sigma, num = 0.5, 3000
+    gaps = [-0.03, 0.0, 0.01, 0.025, 0.01]
+    sc = SmoothedClassifier(threshold_model, sigma, batch_size=700, seed=4)
+    counts = sc.sample_counts(_frames([0.5 + g for g in gaps]), num, common_noise=True)
+    std = sigma / math.sqrt(H * W)
+    for i, g in enumerate(gaps):
+        p = norm.cdf(g / std)
+        freq = counts[i, 1].item() / num
+        assert abs(freq - p) <= 4.5 * math.sqrt(max(p * (1 - p), 1e-4) / num), (g, freq, p)
+    assert torch.equal(counts[2], counts[4])   # equal frames, the same draws: the same votes
+    # ordered frames, the same draws: votes for "high" are monotone in the frame's mean (common random numbers)
+    assert counts[0, 1] <= counts[1, 1] <= counts[2, 1] <= counts[3, 1]
+
+
 def test_frames_not_modified(threshold_model):
     frames = _frames([0.4, 0.6])
     before = frames.clone()

@@ -33,9 +33,9 @@ from .bounds import SegmentValues
 from .camera import CameraIntrinsics
 from .cloud import Cloud
 from .errors import require
-from .imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, segment_bounds, segment_hulls
+from .imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, segment_bounds, segment_hull, segment_hulls
 from .model import LoadedModel
-from .coverage import COVERAGES, AdaptiveAnchorsRule, cohen_radii, coverage_rule, frontier_reach, packing_bound
+from .coverage import COVERAGES, AdaptiveAnchorsRule, cohen_radii, coverage_rule, frontier_reach, packing_bound, segment_covers
 from .motion import UNITS, parse_axis
 from .partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, Plan, check_radius, validate_grid
 from .result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_NOT_CERTIFIED, Certificate
@@ -372,7 +372,9 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, rule: AdaptiveAnchor
     est_idx = rule.place(row, plan.alphas, centre, target)
     t_stats = time.perf_counter() - t1
     K = len(est_idx)
-    counts = sc.sample_counts(torch.as_tensor(frames[est_idx]), n_est)
+    # the K anchors share their n noise draws (common random numbers: each bound holds, Bonferroni needs no
+    # independence between them; SmoothedClassifier.sample_counts)
+    counts = sc.sample_counts(torch.as_tensor(frames[est_idx]), n_est, common_noise=True)
     k_est = counts[:, label].numpy()
     if progress is not None:
         progress(total_work, total_work)
@@ -386,13 +388,8 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, rule: AdaptiveAnchor
     if reach < plan.radius and R[0] > 0:
         # the covered run stops inside a grid segment: bisect it with the radii now known (frontier_reach)
         t0 = time.perf_counter()
-        anchor_frames, R2 = frames[est_idx], R ** 2
-
-        def covers(a: float, b: float) -> bool:
-            h = segment_hulls(renderer, np.array([a, b]), max_bytes=bounds_bytes(config))
-            return bool(any(h.dist_sq(y)[0] < r2 for y, r2 in zip(anchor_frames, R2)))
-
-        reach, splits = frontier_reach(covers, plan.alphas, covered, centre)
+        hull = segment_hull(renderer, float(plan.alphas[0]), float(plan.alphas[-1]))
+        reach, splits = frontier_reach(segment_covers(hull, frames[est_idx], R), plan.alphas, covered, centre)
         timings = dict(timings, bounds=timings.get("bounds", 0.0) + time.perf_counter() - t0)
     t1 = time.perf_counter()
     steps = np.sqrt(np.sum((frames[1:].astype(np.float64) - frames[:-1]) ** 2, axis=(1, 2, 3)))

@@ -100,18 +100,21 @@ def packing_bound(frames: np.ndarray, radius: float) -> int:
     return len(picked)
 
 
-FRONTIER_SPLITS = 16   # bisections per side of the first uncovered segment once R is known (frontier_reach)
+FRONTIER_SPLITS = 12   # bisections per side of the first uncovered segment once R is known (frontier_reach)
 
 
 def frontier_reach(covers: Callable[[float, float], bool], alphas: np.ndarray, covered: np.ndarray, centre: int,
                    max_splits: int = FRONTIER_SPLITS) -> tuple[float, list[float]]:
-    """The covered radius after bisecting, on each side, the first segment the grid leaves uncovered.
+    """The covered radius after bisecting the first segments the grid leaves uncovered.
 
     ``covers(a, b)`` says whether some estimated frame is within its Cohen radius of every frame of the
     motion segment ``[a, b]`` (sound bounds of that segment alone). On the right, the first uncovered
     segment ``[a, b]`` is halved at ``m``: if ``[a, m]`` is covered the covered run reaches ``m`` and
     ``[m, b]`` is halved next, else ``[a, m]`` is; likewise on the left, at most ``max_splits`` times a
-    side. Returns (the symmetric covered radius on the grid with the bisection points, those points).
+    side. The side whose run is shorter is bisected first (the radius is the smaller run; the other side
+    is bisected only once it limits), so the result equals bisecting both sides to the end, at about
+    half the calls. Returns (the symmetric covered radius on the grid with the bisection points, those
+    points).
 
     Why it may run after the estimation samples: the ``K`` p_A bounds are fixed (and their Bonferroni
     level) before any sample is drawn; whether a segment is covered is then a deterministic fact of the
@@ -124,34 +127,51 @@ def frontier_reach(covers: Callable[[float, float], bool], alphas: np.ndarray, c
     while i < S and covered[i]:
         i += 1
     right = float(alphas[i])
-    if i < S:
-        a, b = float(alphas[i]), float(alphas[i + 1])
-        for _ in range(int(max_splits)):
-            m = 0.5 * (a + b)
-            if not a < m < b:
-                break
-            points.append(m)
-            if covers(a, m):
-                a = right = m
-            else:
-                b = m
+    r_open = (float(alphas[i]), float(alphas[i + 1])) if i < S else None   # the uncovered segment, alpha coordinates
     i = centre - 1
     while i >= 0 and covered[i]:
         i -= 1
     left = -float(alphas[i + 1])
-    if i >= 0:
-        a, b = float(alphas[i]), float(alphas[i + 1])
-        for _ in range(int(max_splits)):
-            m = 0.5 * (a + b)
-            if not a < m < b:
-                break
-            points.append(m)
-            if covers(m, b):
-                b = m
-                left = -m
+    l_open = (float(alphas[i]), float(alphas[i + 1])) if i >= 0 else None
+    splits = {"r": 0, "l": 0}
+    while True:
+        side = "r" if right <= left else "l"
+        seg = r_open if side == "r" else l_open
+        if seg is None or splits[side] >= int(max_splits):
+            break          # the limiting side cannot grow: the radius is final
+        a, b = seg
+        m = 0.5 * (a + b)
+        if not a < m < b:  # float resolution reached
+            if side == "r":
+                r_open = None
             else:
-                a = m
+                l_open = None
+            continue
+        points.append(m)
+        splits[side] += 1
+        if side == "r":
+            if covers(a, m):
+                right, r_open = m, (m, b)
+            else:
+                r_open = (a, m)
+        else:
+            if covers(m, b):
+                left, l_open = -m, (a, m)
+            else:
+                l_open = (m, b)
     return min(right, left), points
+
+
+def segment_covers(hull: Callable[[float, float], object], anchor_frames: np.ndarray, R: np.ndarray) -> Callable[[float, float], bool]:
+    """``covers(a, b)`` for :func:`frontier_reach`: some anchor ``k`` has ``D(x_k)^2 < R_k^2`` on the bounds
+    ``hull(a, b)`` of the segment ``[a, b]`` (an object with ``dist_sq(y)``, e.g. :class:`.imaging.HullValues`)."""
+    R2 = np.asarray(R, dtype=np.float64) ** 2
+
+    def covers(a: float, b: float) -> bool:
+        h = hull(a, b)
+        return bool(any(h.dist_sq(y)[0] < r2 for y, r2 in zip(anchor_frames, R2) if r2 > 0))
+
+    return covers
 
 
 @dataclass(frozen=True)
@@ -245,5 +265,5 @@ def coverage_rule(name: str, num_anchors: int = 9, imaging: str = "paper"):
 
 
 __all__ = ["COVERAGES", "FRONTIER_SPLITS", "AdaptiveAnchorsRule", "AnchorsRule", "PairwiseRule", "PaperRule", "anchor_indices", "cohen_radii",
-           "covered_radius", "coverage_rule", "frontier_reach",
+           "covered_radius", "coverage_rule", "frontier_reach", "segment_covers",
            "packing_bound", "paper_reach", "symmetric_reach"]

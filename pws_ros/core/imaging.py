@@ -543,13 +543,31 @@ def segment_hulls(renderer: SurfelRenderer, alphas, *, max_bytes: int = 1 << 30)
     hi = np.empty((S, h, w, 3), np.float32)
     constant = np.empty((S, h, w), bool)
     sweep = _HullSweep(renderer, float(alphas[0]), float(alphas[-1]))
-    for i in range(S):
-        lo[i], hi[i], constant[i] = sweep.segment(float(alphas[i]), float(alphas[i + 1]))
+    for s in range(0, S, sweep.batch):
+        e = min(S, s + sweep.batch)
+        lo[s:e], hi[s:e], constant[s:e] = sweep.segments(alphas[s:e + 1])
     return HullValues(alphas, lo, hi, constant, {"surfels": renderer.num_points, "segments": S})
 
 
+def segment_hull(renderer: SurfelRenderer, lo: float, hi: float):
+    """``hull(a, b)``: the :class:`HullValues` of one segment ``[a, b]`` inside ``[lo, hi]`` (the same sweep as
+    :func:`segment_hulls`, set up once), for segments chosen one at a time (:func:`.coverage.frontier_reach`)."""
+    sweep = _HullSweep(renderer, float(lo), float(hi))
+
+    def hull(a: float, b: float) -> HullValues:
+        require(lo <= a < b <= hi, f"segment [{a!r}, {b!r}] is not inside [{lo!r}, {hi!r}]")
+        l, h, c = sweep.segment(float(a), float(b))
+        return HullValues(np.array([a, b], dtype=np.float64), l[None], h[None], c[None], {"surfels": renderer.num_points, "segments": 1})
+
+    return hull
+
+
+HULL_BATCH_ELEMENTS = 300_000   # surfel-segments bounded per batch of segments (about 0.5 KB each at the peak: ~160 MB)
+
+
 class _HullSweep:
-    """Evaluates the surfel footprints segment after segment (each grid point is computed once)."""
+    """Evaluates the surfel footprints over batches of consecutive segments: every tensor operation serves
+    a whole batch, so its cost (and the wake-up of torch's threads) is shared by the segments."""
 
     def __init__(self, r: SurfelRenderer, lo: float, hi: float):
         self.r = r
@@ -557,131 +575,139 @@ class _HullSweep:
         corners = r.corners_np.reshape(-1, 3)
         self.corner_ev = split_events(corners, r.axis, lo, hi)      # corner u, v, depth extrema
         self.centre_ev = split_events(r.points_np, r.axis, lo, hi)  # centre depth extrema
-        self._end: tuple | None = None
 
-    def _eval(self, a: float):
-        r = self.r
-        t = torch.tensor([a], dtype=torch.float64, device=r.device)
-        u, v, d = project(r.corners[None], r.intr, r.axis, t[:, None, None], xp=torch)
-        zc = depth(r.points[None], r.axis, t[:, None], xp=torch)
-        return u[0], v[0], d[0], zc[0]
-
-    def _at(self, a: float):
-        if self._end is not None and self._end[0] == a:
-            return self._end[1:]
-        return self._eval(a)
+    @property
+    def batch(self) -> int:
+        """Segments per batch."""
+        return max(1, HULL_BATCH_ELEMENTS // max(1, self.P))
 
     @staticmethod
-    def _inside(ev, a: float, b: float, device):
+    def _inside(ev, g: np.ndarray, device):
+        """The events strictly inside the segments of the grid ``g``: (index, alpha, segment) tensors (an
+        event on a grid point is that point, evaluated as an end)."""
         i, t = ev
-        s, e = np.searchsorted(t, a, side="right"), np.searchsorted(t, b, side="left")
-        return torch.as_tensor(i[s:e], device=device), torch.as_tensor(t[s:e], device=device)
+        s, e = np.searchsorted(t, g[0], side="right"), np.searchsorted(t, g[-1], side="left")
+        i, t = i[s:e], t[s:e]
+        seg = np.searchsorted(g, t, side="left") - 1          # g[seg] < t <= g[seg + 1]
+        ok = t < g[np.minimum(seg + 1, len(g) - 1)]
+        return (torch.as_tensor(i[ok], device=device), torch.as_tensor(t[ok], device=device),
+                torch.as_tensor(seg[ok], device=device))
 
-    def ranges(self, a: float, b: float, keep_end: bool = True):
-        """Per surfel over ``[a, b]``: the range of every corner's ``u`` and ``v`` (4, P), the least corner
-        depth (4, P), the centre depth range (P,) and the centre depth at ``a``."""
-        r = self.r
-        ua, va, da, za = self._at(a)
-        ub, vb, db, zb = self._at(b)
-        u_lo, u_hi = torch.minimum(ua, ub).reshape(-1), torch.maximum(ua, ub).reshape(-1)   # per corner (4 P)
-        v_lo, v_hi = torch.minimum(va, vb).reshape(-1), torch.maximum(va, vb).reshape(-1)
-        d_lo = torch.minimum(da, db).reshape(-1)                                           # corner depth
-        z_lo, z_hi = torch.minimum(za, zb), torch.maximum(za, zb)                          # centre depth (P,)
-        flat, t = self._inside(self.corner_ev, a, b, r.device)
+    def ranges(self, g):
+        """Per segment ``[g[k], g[k+1]]`` and surfel: the range of every corner's ``u`` and ``v`` (B, 4, P), the
+        least corner depth (B, 4, P), the centre depth range (B, P) each."""
+        r, P = self.r, self.P
+        g = np.asarray(g, dtype=np.float64)
+        B = len(g) - 1
+        t = torch.as_tensor(g, dtype=torch.float64, device=r.device)
+        u, v, d = project(r.corners[None], r.intr, r.axis, t[:, None, None], xp=torch)   # (B+1, 4, P)
+        zc = depth(r.points[None], r.axis, t[:, None], xp=torch)                          # (B+1, P)
+        u_lo, u_hi = torch.minimum(u[:-1], u[1:]).reshape(-1), torch.maximum(u[:-1], u[1:]).reshape(-1)   # (B 4 P)
+        v_lo, v_hi = torch.minimum(v[:-1], v[1:]).reshape(-1), torch.maximum(v[:-1], v[1:]).reshape(-1)
+        d_lo = torch.minimum(d[:-1], d[1:]).reshape(-1)
+        z_lo, z_hi = torch.minimum(zc[:-1], zc[1:]).reshape(-1), torch.maximum(zc[:-1], zc[1:]).reshape(-1)
+        flat, te, seg = self._inside(self.corner_ev, g, r.device)
         if len(flat):
-            uu, vv, dd = project(r.corners.reshape(-1, 3)[flat], r.intr, r.axis, t, xp=torch)
-            u_lo = u_lo.scatter_reduce(0, flat, uu, "amin")
-            u_hi = u_hi.scatter_reduce(0, flat, uu, "amax")
-            v_lo = v_lo.scatter_reduce(0, flat, vv, "amin")
-            v_hi = v_hi.scatter_reduce(0, flat, vv, "amax")
-            d_lo = d_lo.scatter_reduce(0, flat, dd, "amin")
-        p, t = self._inside(self.centre_ev, a, b, r.device)
+            uu, vv, dd = project(r.corners.reshape(-1, 3)[flat], r.intr, r.axis, te, xp=torch)
+            at = seg * (4 * P) + flat
+            u_lo = u_lo.scatter_reduce(0, at, uu, "amin")
+            u_hi = u_hi.scatter_reduce(0, at, uu, "amax")
+            v_lo = v_lo.scatter_reduce(0, at, vv, "amin")
+            v_hi = v_hi.scatter_reduce(0, at, vv, "amax")
+            d_lo = d_lo.scatter_reduce(0, at, dd, "amin")
+        p, te, seg = self._inside(self.centre_ev, g, r.device)
         if len(p):
-            zz = depth(r.points[p], r.axis, t, xp=torch)
-            z_lo = z_lo.scatter_reduce(0, p, zz, "amin")
-            z_hi = z_hi.scatter_reduce(0, p, zz, "amax")
-        self._end = (b, ub, vb, db, zb) if keep_end else None
-        P = self.P
-        return u_lo.view(4, P), u_hi.view(4, P), v_lo.view(4, P), v_hi.view(4, P), d_lo.view(4, P), z_lo, z_hi, za
+            zz = depth(r.points[p], r.axis, te, xp=torch)
+            at = seg * P + p
+            z_lo = z_lo.scatter_reduce(0, at, zz, "amin")
+            z_hi = z_hi.scatter_reduce(0, at, zz, "amax")
+        shape = (B, 4, P)
+        return (u_lo.view(shape), u_hi.view(shape), v_lo.view(shape), v_hi.view(shape), d_lo.view(shape),
+                z_lo.view(B, P), z_hi.view(B, P))
 
-    def segment(self, a: float, b: float) -> tuple[np.ndarray, np.ndarray]:
-        return self._bound(*self.ranges(a, b))
+    def segments(self, g) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``lo, hi`` (B, h, w, 3) float32 and ``constant`` (B, h, w) of the segments of the grid ``g``."""
+        return self._bound(*self.ranges(g))
+
+    def segment(self, a: float, b: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        lo, hi, one = self.segments([a, b])
+        return lo[0], hi[0], one[0]
 
     def maybe_visible(self, a: float, b: float) -> np.ndarray:
         """Surfels that can cover a native pixel for some alpha in ``[a, b]`` (a superset)."""
-        u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi, _ = self.ranges(a, b, keep_end=False)
+        u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi = (x[0] for x in self.ranges([a, b]))
         H, W = self.r.intr.height, self.r.intr.width
         wild = (z_hi > 0) & ~((d_lo > 0).all(0) & (z_lo > 0))
         inside = (u_hi.amax(0) >= -1) & (u_lo.amin(0) <= W + 1) & (v_hi.amax(0) >= -1) & (v_lo.amin(0) <= H + 1)
         return ((z_hi > 0) & (inside | wild)).cpu().numpy()
 
-    def _bound(self, u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi, za):
+    def _bound(self, u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi):
         r = self.r
         H, W = r.intr.height, r.intr.width
+        HW = H * W
+        B, _, P = u_lo.shape
         dev = r.device
         # a surfel is drawn at alpha iff every corner and its centre are in front of the camera
-        sure_drawn = (d_lo > 0).all(0) & (z_lo > 0)
+        sure_drawn = (d_lo > 0).all(1) & (z_lo > 0)                                           # (B, P)
         maybe = z_hi > 0
         # where a corner may cross depth 0 its projection is unbounded: the whole image
         wild = maybe & ~sure_drawn
-        sw_u0, sw_u1 = u_lo.amin(0), u_hi.amax(0)
-        sw_v0, sw_v1 = v_lo.amin(0), v_hi.amax(0)
         big = float(max(H, W)) + 10.0
-        sw_u0 = torch.where(wild, torch.full_like(sw_u0, -big), sw_u0)
-        sw_u1 = torch.where(wild, torch.full_like(sw_u1, big), sw_u1)
-        sw_v0 = torch.where(wild, torch.full_like(sw_v0, -big), sw_v0)
-        sw_v1 = torch.where(wild, torch.full_like(sw_v1, big), sw_v1)
+        sw_u0 = u_lo.amin(1).masked_fill_(wild, -big)
+        sw_u1 = u_hi.amax(1).masked_fill_(wild, big)
+        sw_v0 = v_lo.amin(1).masked_fill_(wild, -big)
+        sw_v1 = v_hi.amax(1).masked_fill_(wild, big)
         # surely covered: left edge at its rightmost, right edge at its leftmost (module doc)
-        su0, su1 = u_hi.amin(0), u_lo.amax(0)
-        sv0, sv1 = v_hi.amin(0), v_lo.amax(0)
+        su0, su1 = u_hi.amin(1).view(-1), u_lo.amax(1).view(-1)
+        sv0, sv1 = v_hi.amin(1).view(-1), v_lo.amax(1).view(-1)
         key = r.order_key   # constant in alpha: one comparison orders two surfels for the whole segment
         # candidates: possibly covering at some alpha of the segment
-        _, cp, cpix = covered_pairs(sw_u0[None], sw_u1[None], sw_v0[None], sw_v1[None], maybe[None], r.samples, EDGE_EPS)
+        bi, cp, cpix = covered_pairs(sw_u0, sw_u1, sw_v0, sw_v1, maybe, r.samples, EDGE_EPS)
+        fp = bi * P + cp          # (segment, surfel)
+        q = bi * HW + cpix        # (segment, native pixel)
         # the surely covering pairs among them (the sure box lies inside the sweep box, sure_drawn implies maybe)
         su, sv = r.samples.su[cpix], r.samples.sv[cpix]
-        is_sure = (sure_drawn[cp] & (su0[cp] + EDGE_EPS <= su) & (su < su1[cp] - EDGE_EPS)
-                   & (sv0[cp] + EDGE_EPS <= sv) & (sv < sv1[cp] - EDGE_EPS))
-        sp, spix = cp[is_sure], cpix[is_sure]
-        # the least key of a surely covering surfel, per native pixel: it always hides greater keys
-        sure_far = torch.full((H * W,), float("inf"), dtype=torch.float64, device=dev)
+        is_sure = (sure_drawn.view(-1)[fp] & (su0[fp] + EDGE_EPS <= su) & (su < su1[fp] - EDGE_EPS)
+                   & (sv0[fp] + EDGE_EPS <= sv) & (sv < sv1[fp] - EDGE_EPS))
+        sp, sq = cp[is_sure], q[is_sure]
+        # the least key of a surely covering surfel, per segment and native pixel: it always hides greater keys
+        sure_far = torch.full((B * HW,), float("inf"), dtype=torch.float64, device=dev)
         if len(sp):
-            sure_far.scatter_reduce_(0, spix, key[sp], reduce="amin", include_self=True)
-        limit = sure_far[cpix]
-        keep = key[cp] <= limit
+            sure_far.scatter_reduce_(0, sq, key[sp], reduce="amin", include_self=True)
+        limit = sure_far[q]
+        kc = key[cp]
+        keep = kc <= limit
         if len(sp):
             # equal keys: the renderer's lower-index rule decides, so a later point never shows
-            big = torch.iinfo(torch.long).max
-            first = torch.full((H * W,), big, dtype=torch.long, device=dev)
-            tied = key[sp] == sure_far[spix]
-            first.scatter_reduce_(0, spix[tied], sp[tied], reduce="amin", include_self=True)
-            keep &= ~((key[cp] == limit) & (cp > first[cpix]))
-        cp, cpix = cp[keep], cpix[keep]
+            first = torch.full((B * HW,), torch.iinfo(torch.long).max, dtype=torch.long, device=dev)
+            tied = key[sp] == sure_far[sq]
+            first.scatter_reduce_(0, sq[tied], sp[tied], reduce="amin", include_self=True)
+            keep &= ~((kc == limit) & (cp > first[q]))
+        cp, q = cp[keep], q[keep]
         col = r.colors[:-1].to(torch.float64)
         bg = float(r.background)
         open_ = torch.isinf(sure_far)
-        inf = torch.full((H * W,), float("inf"), dtype=torch.float64, device=dev)
-        bgv = torch.full_like(inf, bg)
-        lo = torch.where(open_, bgv, inf)[:, None].repeat(1, 3)
-        hi = torch.where(open_, bgv, -inf)[:, None].repeat(1, 3)
+        f64 = dict(dtype=torch.float64, device=dev)
+        lo = torch.where(open_, torch.tensor(bg, **f64), torch.tensor(float("inf"), **f64))[:, None].repeat(1, 3)
+        hi = torch.where(open_, torch.tensor(bg, **f64), torch.tensor(float("-inf"), **f64))[:, None].repeat(1, 3)
         if len(cp):
-            idx = cpix[:, None].expand(-1, 3)
+            idx = q[:, None].expand(-1, 3)
             lo.scatter_reduce_(0, idx, col[cp], reduce="amin", include_self=True)
             hi.scatter_reduce_(0, idx, col[cp], reduce="amax", include_self=True)
         require(bool(torch.isfinite(lo).all() and torch.isfinite(hi).all()), "internal: a pixel without any value")
         im = r.imaging
-        lo_o = _block_mean64(lo.view(1, H, W, 3), im) - VALUE_EPS
-        hi_o = _block_mean64(hi.view(1, H, W, 3), im) + VALUE_EPS
+        lo_o = _block_mean64(lo.view(B, H, W, 3), im) - VALUE_EPS
+        hi_o = _block_mean64(hi.view(B, H, W, 3), im) + VALUE_EPS
         # output pixels whose every native pixel has one value throughout: bitwise constant over the segment
         k = im.factor
         h, w = im.out_shape
-        one = (lo == hi).all(dim=1).view(h, k, w, k).all(dim=3).all(dim=1)
+        one = (lo == hi).all(dim=1).view(B, h, k, w, k).all(dim=4).all(dim=2)
         bx, by = im.border
         if bx:
-            one[:, :bx] = one[:, w - bx:] = True
+            one[:, :, :bx] = one[:, :, w - bx:] = True
         if by:
-            one[:by] = one[h - by:] = True
-        return (lo_o[0].cpu().numpy().astype(np.float32), hi_o[0].cpu().numpy().astype(np.float32),
-                one.cpu().numpy())
+            one[:, :by] = one[:, h - by:] = True
+        return (lo_o.cpu().numpy().astype(np.float32), hi_o.cpu().numpy().astype(np.float32), one.cpu().numpy())
 
 
 def _block_mean64(x: torch.Tensor, im: Imaging) -> torch.Tensor:
@@ -710,4 +736,4 @@ def _block_mean64(x: torch.Tensor, im: Imaging) -> torch.Tensor:
 
 __all__ = ["AXES", "DEFAULT_RENDER_FACTOR", "EDGE_EPS", "HullValues", "IMAGING_KINDS", "Imaging", "SURFEL_OVERLAP",
            "SurfelRenderer", "auto_border", "bin_cloud", "make_imaging", "make_renderer", "occlusion_key", "plan_for", "reduce_frames",
-           "render_plan_surfel", "segment_bounds", "segment_hulls", "surfel_corners"]
+           "render_plan_surfel", "segment_bounds", "segment_hull", "segment_hulls", "surfel_corners"]

@@ -207,13 +207,18 @@ class SmoothedClassifier:
             check(frames.shape[1], frames.shape[2], what="frame")
 
     def sample_counts(self, frames: Any, num: int,
-                      progress: Callable[[int, int], None] | None = None) -> torch.Tensor:
+                      progress: Callable[[int, int], None] | None = None, *, common_noise: bool = False) -> torch.Tensor:
         """Votes per class: ``(B, C)`` int64 (CPU) for ``num`` noisy samples of each frame.
 
         ``frames`` ``(B, H, W, 3)`` float32 (torch, any device, or numpy); each sample is
         ``frame.permute(2, 0, 1) + N(0, sigma^2 I)``. Samples of consecutive frames share
         classifier batches of up to ``batch_size`` images, so memory is bounded by ``batch_size``.
         ``progress(done, total)`` is called after each batch (``total = B * num``).
+
+        ``common_noise``: the frames share the same ``num`` noise draws (common random numbers), drawn a
+        batch at a time. Each frame's count is still Binomial(``num``, its p_A), so each Clopper-Pearson
+        bound holds; a Bonferroni union bound over the frames needs no independence between them. The
+        noise, the costliest part after the classifier on a CPU, is then drawn once instead of B times.
         """
         require(isinstance(num, (int, np.integer)) and not isinstance(num, bool) and int(num) >= 1,
                 f"the number of noise samples must be an integer >= 1, got {num!r}")
@@ -226,6 +231,8 @@ class SmoothedClassifier:
         if B == 0:
             return torch.zeros((0, max(self.model.num_classes, 0)), dtype=torch.long)
         chw = frames.permute(0, 3, 1, 2)  # a view: values untouched
+        if common_noise and B > 1:
+            return self._common_counts(chw, num, progress)
         t0 = time.perf_counter()
         try:
             for start in range(0, total, self.batch_size):
@@ -252,6 +259,36 @@ class SmoothedClassifier:
             self.inference_seconds += time.perf_counter() - t0
         assert counts is not None
         return counts.view(B, -1).cpu()
+
+    def _common_counts(self, chw: torch.Tensor, num: int, progress: Callable[[int, int], None] | None) -> torch.Tensor:
+        """:meth:`sample_counts` with ``common_noise``: one noise batch serves every frame in turn."""
+        B, _, H, W = chw.shape
+        counts: torch.Tensor | None = None
+        t0 = time.perf_counter()
+        try:
+            done = 0
+            for start in range(0, num, self.batch_size):
+                b = min(self.batch_size, num - start)
+                noise = torch.randn((b, 3, H, W), generator=self.generator, device=self.device, dtype=torch.float32).mul_(self.sigma)
+                x = torch.empty_like(noise)
+                for k in range(B):
+                    torch.add(noise, chw[k].to(self.device), out=x)
+                    pred = self._classify(x, use_denoiser=True)
+                    if counts is None:
+                        C = self.model.num_classes
+                        require(C >= 1, f"model {getattr(self.model, 'path', '')} has no known number of classes")
+                        counts = torch.zeros((B, C), dtype=torch.long, device=self.device)
+                    C = counts.shape[1]
+                    require(int(pred.max()) < C, f"model output has more than the {C} classes it declares")
+                    counts[k] += torch.bincount(pred, minlength=C)
+                    done += b
+                    if progress is not None:
+                        progress(done, B * num)
+            _sync(self.device)
+        finally:
+            self.inference_seconds += time.perf_counter() - t0
+        assert counts is not None
+        return counts.cpu()
 
     def predict(self, frames: Any, *, use_denoiser: bool = False) -> torch.Tensor:
         """Clean argmax (no noise) of the base classifier per frame: ``(B,)`` int64 (CPU).
