@@ -48,9 +48,31 @@ def test_rgbd_frames_are_matched_and_converted():
     frame = convert(raw, cfg)
     assert len(frame.cloud) == 47 and frame.intrinsics == CAM and frame.has_color
     np.testing.assert_allclose(frame.cloud.colors, 200 / 255, atol=1e-6)
-    # beyond tolerance: no frame
+    # beyond the tolerance: no frame at once (within sync_max_skew_s it waits to be settled)
     asm.on_depth(depth_msg(200 * MS))
     assert asm.on_color(color_msg(210 * MS)) is None
+
+
+def test_unsynced_pair_is_settled_by_the_end_of_the_input_and_says_its_skew():
+    cfg = config_from_params({"input_mode": "rgbd", "sync_tolerance_s": 0.005, "sync_max_skew_s": 0.2})
+    asm = InputAssembler(cfg)
+    asm.on_info(info_msg())
+    assert asm.on_color(color_msg(100 * MS)) is None
+    assert asm.on_depth(depth_msg(160 * MS)) is None          # a later colour frame could be nearer
+    raw = asm.flush()                                         # the end of a recording: none can come
+    assert raw is not None and raw.stamp_ns == 100 * MS and raw.skew_ns == 60 * MS
+    warn = asm.skew_warning(raw)
+    assert "60.0 ms apart" in warn and "sync_max_skew_s" in warn
+    assert asm.flush() is None
+    # within the tolerance: no warning; a new config at run time (ros2 param set) reaches the matcher
+    asm.on_depth(depth_msg(300 * MS))
+    raw = asm.on_color(color_msg(302 * MS))
+    assert raw is not None and raw.skew_ns == 2 * MS and asm.skew_warning(raw) == ""
+    asm.reconfigure(config_from_params({"input_mode": "rgbd", "sync_tolerance_s": 0.005, "sync_max_skew_s": 0.0}))
+    assert asm.matcher.max_skew_ns == 0 and asm.matcher.tolerance_ns == 5 * MS
+    asm.on_color(color_msg(400 * MS))
+    asm.on_depth(depth_msg(460 * MS))
+    assert asm.flush() is None                                # 60 ms apart is refused now
 
 
 def test_rgbd_pair_waits_for_the_first_camera_info():

@@ -323,8 +323,10 @@ def test_place_anchors_reads_rows_lazily_with_the_same_result(seed, S, target, b
     def piece(j, i0=0, i1=None):
         return full(j)[i0:i1]
 
-    lazy = place_anchors(piece, alphas, centre, target ** 2, budget, partial=True)
+    rows: dict = {}
+    lazy = place_anchors(piece, alphas, centre, target ** 2, budget, partial=True, rows_out=rows)
     assert lazy == place_anchors(full, alphas, centre, target ** 2, budget)
+    assert sorted(rows) == sorted(lazy) and all(np.array_equal(rows[a], full(a)) for a in lazy)
 
 
 def test_refine_plan_splits_only_where_frames_differ():

@@ -42,11 +42,12 @@ ROW_BLOCK = 32         # segments per lazily computed piece of a candidate's dis
 
 
 def place_anchors(dist_sq_row: Callable[..., np.ndarray], alphas: np.ndarray, centre: int, target_sq: float,
-                  max_anchors: int, *, partial: bool = False) -> list[int]:
+                  max_anchors: int, *, partial: bool = False, rows_out: dict[int, np.ndarray] | None = None) -> list[int]:
     """Grid indices of the anchors (the centre first). ``dist_sq_row(j)`` returns ``D_i(x_j)^2`` for every
     segment ``i`` (segment ``i`` joins grid points ``i`` and ``i + 1`` of ``alphas``; ``alphas[centre]`` = 0);
     with ``partial``, ``dist_sq_row(j, i0, i1)`` returns them for segments ``i0 .. i1 - 1`` only, and a
-    candidate's row is computed only as far as the search needs it (the chosen anchors' rows in full)."""
+    candidate's row is computed only as far as the search needs it (the chosen anchors' rows in full).
+    ``rows_out`` (a dict) receives the full row of every anchor placed (computed once)."""
     S = len(alphas) - 1
     rows: dict[int, np.ndarray] = {}
     known: dict[int, np.ndarray] = {}
@@ -99,7 +100,7 @@ def place_anchors(dist_sq_row: Callable[..., np.ndarray], alphas: np.ndarray, ce
     anchors = [centre]
     covered = row(centre) < target_sq
     if target_sq <= 0:
-        return anchors
+        return _with_rows(anchors, row, rows_out)
 
     def frontier_right(cov):
         f = centre
@@ -144,6 +145,13 @@ def place_anchors(dist_sq_row: Callable[..., np.ndarray], alphas: np.ndarray, ce
             continue
         anchors.append(best)
         covered |= row(best) < target_sq
+    return _with_rows(anchors, row, rows_out)
+
+
+def _with_rows(anchors: list[int], row: Callable[[int], np.ndarray], rows_out: dict[int, np.ndarray] | None) -> list[int]:
+    if rows_out is not None:
+        for a in anchors:
+            rows_out[a] = row(a)
     return anchors
 
 

@@ -369,7 +369,8 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, rule: AdaptiveAnchor
     def row(jj: int, i0: int = 0, i1: int | None = None) -> np.ndarray:
         return hulls.dist_sq(frames[jj], slice(i0, i1))
 
-    est_idx = rule.place(row, plan.alphas, centre, target)
+    anchor_rows: dict[int, np.ndarray] = {}
+    est_idx = rule.place(row, plan.alphas, centre, target, rows_out=anchor_rows)
     t_stats = time.perf_counter() - t1
     K = len(est_idx)
     # the K anchors share their n noise draws (common random numbers: each bound holds, Bonferroni needs no
@@ -381,7 +382,7 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, rule: AdaptiveAnchor
     t1 = time.perf_counter()
     p_lower = np.asarray(clopper_pearson_lower(k_est, n_est, bonferroni(config.alpha, K)), dtype=np.float64).reshape(-1)
     R = cohen_radii(p_lower, config.sigma)
-    D2 = np.stack([row(int(a)) for a in est_idx])
+    D2 = np.stack([anchor_rows[int(a)] for a in est_idx])
     reach, covered = rule.radius(R, D2, plan.alphas, centre)   # the placed anchors: a fixed set (module doc of .anchors)
     t_stats += time.perf_counter() - t1
     splits: list[float] = []

@@ -240,11 +240,14 @@ class AdaptiveAnchorsRule(AnchorsRule):
 
     adaptive = True
 
-    def place(self, dist_sq_row, alphas: np.ndarray, centre: int, target: float) -> np.ndarray:
-        """Grid indices of the anchors (the centre first) for the target Cohen radius ``target``."""
+    def place(self, dist_sq_row, alphas: np.ndarray, centre: int, target: float,
+              rows_out: dict | None = None) -> np.ndarray:
+        """Grid indices of the anchors (the centre first) for the target Cohen radius ``target``
+        (``rows_out`` receives each anchor's distance row, :func:`.anchors.place_anchors`)."""
         from .anchors import place_anchors
 
-        return np.array(place_anchors(dist_sq_row, alphas, centre, target ** 2, self.num_anchors, partial=True), dtype=np.int64)
+        return np.array(place_anchors(dist_sq_row, alphas, centre, target ** 2, self.num_anchors, partial=True,
+                                      rows_out=rows_out), dtype=np.int64)
 
     def radius(self, R: np.ndarray, anchor_dist_sq: np.ndarray, alphas: np.ndarray, centre: int) -> tuple[float, np.ndarray]:
         """(covered radius, covered segments)."""

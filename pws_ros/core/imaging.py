@@ -461,12 +461,13 @@ class HullValues:
         """``D_i(y)^2 = sum max((lo - y)^2, (hi - y)^2)``: ``|x(alpha) - y|^2 <= D_i(y)^2`` on segment ``i``."""
         sel = slice(None) if segments is None else segments
         y = _as64(y)
-        m = np.subtract(self.lo[sel], y, dtype=np.float64)   # float64 throughout, two temporaries
-        np.square(m, out=m)
+        # max((lo - y)^2, (hi - y)^2) = max(y - lo, hi - y)^2 (one of the two is the larger magnitude):
+        # float64 throughout, two temporaries, the squares summed as a dot product
+        m = np.subtract(y, self.lo[sel], dtype=np.float64)
         e = np.subtract(self.hi[sel], y, dtype=np.float64)
-        np.square(e, out=e)
         np.maximum(m, e, out=m)
-        return m.reshape(m.shape[0], -1).sum(axis=1) * SAFETY
+        m = m.reshape(m.shape[0], -1)
+        return np.einsum("ij,ij->i", m, m) * SAFETY
 
     def pair_bound_sq(self, frames, k0: int = 0) -> np.ndarray:
         """``|x(alpha) - x_i|^2 + |x(alpha) - x_{i+1}|^2`` bounds for segments ``k0 .. k0 + len(frames) - 2``."""
