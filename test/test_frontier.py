@@ -23,52 +23,85 @@ from pws_ros.core.imaging import make_imaging
 from pws_ros.core.model import load_model, save_model
 
 
-def reference_side(a, b, covers_half, splits):
-    """Plain loop: bisect [a, b] from ``a`` (covers_half(a, m) says whether [a, m] is covered)."""
-    reach = a
-    for _ in range(splits):
-        m = (a + b) / 2
-        if not (min(a, b) < m < max(a, b)):
+def reference_reach(alphas, centre, t_right, t_left, parts, rounds):
+    """Plain loops: the covered run on each side, the first uncovered grid segment cut into ``parts``
+    equal parts ``rounds`` times (covered parts extend the run; a wholly covered segment passes the run
+    on along the grid), both sides to the end; the symmetric radius is the smaller run."""
+    S = len(alphas) - 1
+
+    def cov(a, b):
+        return -t_left <= a and b <= t_right
+
+    # right
+    i = centre
+    while i < S and cov(alphas[i], alphas[i + 1]):
+        i += 1
+    right, seg, r = alphas[i], (i < S and (alphas[i], alphas[i + 1], i)), 0
+    while seg and r < rounds:
+        a, b, k0 = seg
+        g = [a + (b - a) * k / parts for k in range(parts + 1)]
+        g[0], g[-1] = a, b
+        if any(g[k + 1] <= g[k] for k in range(parts)):
             break
-        if covers_half(a, m):
-            a = reach = m
+        r += 1
+        k = 0
+        while k < parts and cov(g[k], g[k + 1]):
+            k += 1
+        if k == parts:
+            i = k0 + 1
+            while i < S and cov(alphas[i], alphas[i + 1]):
+                i += 1
+            right, seg = alphas[i], (i < S and (alphas[i], alphas[i + 1], i))
         else:
-            b = m
-    return reach
+            right, seg = g[k], (g[k], g[k + 1], k0)
+    # left
+    i = centre - 1
+    while i >= 0 and cov(alphas[i], alphas[i + 1]):
+        i -= 1
+    left, seg, r = -alphas[i + 1], (i >= 0 and (alphas[i], alphas[i + 1], i)), 0
+    while seg and r < rounds:
+        a, b, k0 = seg
+        g = [a + (b - a) * k / parts for k in range(parts + 1)]
+        g[0], g[-1] = a, b
+        if any(g[k + 1] <= g[k] for k in range(parts)):
+            break
+        r += 1
+        m = parts
+        while m > 0 and cov(g[m - 1], g[m]):
+            m -= 1
+        if m == 0:
+            i = k0 - 1
+            while i >= 0 and cov(alphas[i], alphas[i + 1]):
+                i -= 1
+            left, seg = -alphas[i + 1], (i >= 0 and (alphas[i], alphas[i + 1], i))
+        else:
+            left, seg = -g[m], (g[m - 1], g[m], k0)
+    return min(right, left)
 
 
-@settings(max_examples=60, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), S=st.integers(2, 12), splits=st.integers(0, 20))
-def test_frontier_reach_against_a_loop(seed, S, splits):
+@settings(max_examples=80, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), S=st.integers(2, 12), parts=st.integers(2, 9), rounds=st.integers(0, 6))
+def test_frontier_reach_against_a_loop(seed, S, parts, rounds):
     rng = np.random.default_rng(seed)
     alphas = np.sort(np.concatenate([[-1.0, 0.0, 1.0], rng.uniform(-0.999, 0.999, S - 2)]))   # S segments
     centre = int(np.searchsorted(alphas, 0.0))
     t_right, t_left = rng.uniform(0, 1.2), rng.uniform(0, 1.2)   # the truly covered range [-t_left, t_right]
     calls = []
 
-    def covers(a, b):
-        calls.append((a, b))
-        assert a < b
-        return -t_left <= a and b <= t_right
+    def covers(g):
+        assert np.all(np.diff(g) > 0)
+        calls.append(len(g) - 1)
+        return np.array([-t_left <= a and b <= t_right for a, b in zip(g[:-1], g[1:])])
 
-    covered = np.array([covers(a, b) for a, b in zip(alphas[:-1], alphas[1:])])
+    covered = covers(alphas)
     calls.clear()
-    reach, points = frontier_reach(covers, alphas, covered, centre, max_splits=splits)
-    # reference, side by side
-    i = centre
-    while i < S and covered[i]:
-        i += 1
-    right = alphas[i] if i == S else reference_side(alphas[i], alphas[i + 1], lambda a, m: m <= t_right, splits)
-    i = centre - 1
-    while i >= 0 and covered[i]:
-        i -= 1
-    left = -alphas[i + 1] if i < 0 else -reference_side(alphas[i + 1], alphas[i], lambda b, m: -t_left <= m, splits)
-    assert reach == min(right, left)
-    assert reach <= min(t_right, t_left) + 1e-15            # never claims more than is covered
-    assert len(points) == len(calls) <= 2 * splits
-    assert all(not np.any(alphas == p) for p in points)     # new grid points only
-    if splits >= 12 and 0 < t_right < 1 and 0 < t_left < 1:  # and it gets close to the truth
-        assert reach >= min(t_right, t_left) - 2.0 / 2 ** 12
+    reach, points = frontier_reach(covers, alphas, covered, centre, parts=parts, rounds=rounds)
+    assert reach == reference_reach(alphas, centre, t_right, t_left, parts, rounds)
+    assert reach <= min(t_right, t_left, 1.0) + 1e-15          # never claims more than is covered
+    assert len(calls) <= 2 * rounds and len(points) == sum(c - 1 for c in calls)
+    assert all(not np.any(alphas == p) for p in points)        # new grid points only
+    if rounds >= 4 and parts >= 4:                             # and it gets close to the truth
+        assert reach >= min(t_right, t_left, 1.0) - 2.0 / 4 ** 4
 
 
 @pytest.fixture(scope="module")
@@ -150,12 +183,13 @@ def test_segment_hull_of_a_sub_segment_holds_under_brute_force(seed, axis):
     im = make_imaging("surfel", CAM, (3, 4), background=0.5, border=0)
     r = SurfelRenderer(cloud, im, axis)
     b = SCALE[axis]
-    hull = segment_hull(r, -b, b)
-    for _ in range(3):
-        lo, hi = np.sort(rng.uniform(-b, b, 2))
-        h = hull(lo, hi)
-        ref = segment_hulls(r, np.array([lo, hi]))
+    hulls = segment_hull(r, -b, b)
+    for _ in range(2):
+        g = np.sort(rng.uniform(-b, b, 4))
+        h = hulls(g)
+        ref = segment_hulls(r, g)
         assert np.array_equal(h.lo, ref.lo) and np.array_equal(h.hi, ref.hi)
-        for a in [lo, hi, np.nextafter(lo, hi), *rng.uniform(lo, hi, 6)]:
-            f = reference_frame(cloud.points, cloud.colors, im, axis, a)
-            assert np.all(f >= h.lo[0] - 1e-7) and np.all(f <= h.hi[0] + 1e-7), (axis, lo, hi, a)
+        for i, (lo, hi) in enumerate(zip(g[:-1], g[1:])):
+            for a in [lo, hi, np.nextafter(lo, hi), *rng.uniform(lo, hi, 4)]:
+                f = reference_frame(cloud.points, cloud.colors, im, axis, a)
+                assert np.all(f >= h.lo[i] - 1e-7) and np.all(f <= h.hi[i] + 1e-7), (axis, lo, hi, a)

@@ -387,7 +387,7 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, rule: AdaptiveAnchor
     t_stats += time.perf_counter() - t1
     splits: list[float] = []
     if reach < plan.radius and R[0] > 0:
-        # the covered run stops inside a grid segment: bisect it with the radii now known (frontier_reach)
+        # the covered run stops inside a grid segment: refine it with the radii now known (frontier_reach)
         t0 = time.perf_counter()
         hull = segment_hull(renderer, float(plan.alphas[0]), float(plan.alphas[-1]))
         reach, splits = frontier_reach(segment_covers(hull, frames[est_idx], R), plan.alphas, covered, centre)

@@ -100,21 +100,22 @@ def packing_bound(frames: np.ndarray, radius: float) -> int:
     return len(picked)
 
 
-FRONTIER_SPLITS = 12   # bisections per side of the first uncovered segment once R is known (frontier_reach)
+FRONTIER_PARTS = 4     # the first uncovered segment is cut into this many parts per round (frontier_reach; one batch of bounds)
+FRONTIER_ROUNDS = 4    # rounds per side: the frontier is resolved to 1 / 4^4 of the segment
 
 
-def frontier_reach(covers: Callable[[float, float], bool], alphas: np.ndarray, covered: np.ndarray, centre: int,
-                   max_splits: int = FRONTIER_SPLITS) -> tuple[float, list[float]]:
-    """The covered radius after bisecting the first segments the grid leaves uncovered.
+def frontier_reach(covers: Callable[[np.ndarray], np.ndarray], alphas: np.ndarray, covered: np.ndarray, centre: int,
+                   parts: int = FRONTIER_PARTS, rounds: int = FRONTIER_ROUNDS) -> tuple[float, list[float]]:
+    """The covered radius after refining the first segments the grid leaves uncovered.
 
-    ``covers(a, b)`` says whether some estimated frame is within its Cohen radius of every frame of the
-    motion segment ``[a, b]`` (sound bounds of that segment alone). On the right, the first uncovered
-    segment ``[a, b]`` is halved at ``m``: if ``[a, m]`` is covered the covered run reaches ``m`` and
-    ``[m, b]`` is halved next, else ``[a, m]`` is; likewise on the left, at most ``max_splits`` times a
-    side. The side whose run is shorter is bisected first (the radius is the smaller run; the other side
-    is bisected only once it limits), so the result equals bisecting both sides to the end, at about
-    half the calls. Returns (the symmetric covered radius on the grid with the bisection points, those
-    points).
+    ``covers(g)`` says, for each segment ``[g[k], g[k+1]]`` of an increasing grid ``g``, whether some
+    estimated frame is within its Cohen radius of every frame of it (sound bounds of those segments; one
+    call bounds a whole batch). On the right, the first uncovered grid segment ``[a, b]`` is cut into
+    ``parts`` equal parts: the covered run grows over the covered ones from ``a`` and the first uncovered
+    part is cut next (if every part is covered the run reaches ``b`` and goes on along the grid);
+    likewise on the left, at most ``rounds`` times a side. The side whose run is shorter is refined first
+    (the radius is the smaller run; the other side only once it limits). Returns (the symmetric covered
+    radius on the grid with the new points, those points).
 
     Why it may run after the estimation samples: the ``K`` p_A bounds are fixed (and their Bonferroni
     level) before any sample is drawn; whether a segment is covered is then a deterministic fact of the
@@ -123,53 +124,67 @@ def frontier_reach(covers: Callable[[float, float], bool], alphas: np.ndarray, c
     """
     S = len(covered)
     points: list[float] = []
-    i = centre
-    while i < S and covered[i]:
-        i += 1
-    right = float(alphas[i])
-    r_open = (float(alphas[i]), float(alphas[i + 1])) if i < S else None   # the uncovered segment, alpha coordinates
-    i = centre - 1
-    while i >= 0 and covered[i]:
-        i -= 1
-    left = -float(alphas[i + 1])
-    l_open = (float(alphas[i]), float(alphas[i + 1])) if i >= 0 else None
-    splits = {"r": 0, "l": 0}
+
+    def scan_right(i: int):
+        while i < S and covered[i]:
+            i += 1
+        return float(alphas[i]), ((float(alphas[i]), float(alphas[i + 1]), i) if i < S else None)
+
+    def scan_left(i: int):
+        while i >= 0 and covered[i]:
+            i -= 1
+        return -float(alphas[i + 1]), ((float(alphas[i]), float(alphas[i + 1]), i) if i >= 0 else None)
+
+    right, r_open = scan_right(centre)
+    left, l_open = scan_left(centre - 1)
+    used = {"r": 0, "l": 0}
     while True:
         side = "r" if right <= left else "l"
         seg = r_open if side == "r" else l_open
-        if seg is None or splits[side] >= int(max_splits):
+        if seg is None or used[side] >= int(rounds):
             break          # the limiting side cannot grow: the radius is final
-        a, b = seg
-        m = 0.5 * (a + b)
-        if not a < m < b:  # float resolution reached
+        a, b, i = seg
+        g = a + (b - a) * np.arange(int(parts) + 1) / int(parts)
+        g[0], g[-1] = a, b
+        if not np.all(np.diff(g) > 0):   # float resolution reached
             if side == "r":
                 r_open = None
             else:
                 l_open = None
             continue
-        points.append(m)
-        splits[side] += 1
+        used[side] += 1
+        points.extend(float(x) for x in g[1:-1])
+        cov = np.asarray(covers(g), dtype=bool)
         if side == "r":
-            if covers(a, m):
-                right, r_open = m, (m, b)
+            k = int(np.argmin(cov)) if not cov.all() else len(cov)   # covered parts from a
+            if k == len(cov):
+                right, r_open = scan_right(i + 1)
             else:
-                r_open = (a, m)
+                right, r_open = float(g[k]), (float(g[k]), float(g[k + 1]), i)
         else:
-            if covers(m, b):
-                left, l_open = -m, (a, m)
+            rev = cov[::-1]                                            # covered parts from b
+            k = int(np.argmin(rev)) if not rev.all() else len(rev)
+            if k == len(rev):
+                left, l_open = scan_left(i - 1)
             else:
-                l_open = (m, b)
+                m = len(cov) - k                                       # parts m .. end are covered
+                left, l_open = -float(g[m]), (float(g[m - 1]), float(g[m]), i)
     return min(right, left), points
 
 
-def segment_covers(hull: Callable[[float, float], object], anchor_frames: np.ndarray, R: np.ndarray) -> Callable[[float, float], bool]:
-    """``covers(a, b)`` for :func:`frontier_reach`: some anchor ``k`` has ``D(x_k)^2 < R_k^2`` on the bounds
-    ``hull(a, b)`` of the segment ``[a, b]`` (an object with ``dist_sq(y)``, e.g. :class:`.imaging.HullValues`)."""
+def segment_covers(hulls: Callable[[np.ndarray], object], anchor_frames: np.ndarray, R: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """``covers(g)`` for :func:`frontier_reach`: per segment of the grid ``g``, whether some anchor ``k`` has
+    ``D_i(x_k)^2 < R_k^2`` on the bounds ``hulls(g)`` (an object with ``dist_sq(y)`` per segment, e.g.
+    :class:`.imaging.HullValues`)."""
     R2 = np.asarray(R, dtype=np.float64) ** 2
 
-    def covers(a: float, b: float) -> bool:
-        h = hull(a, b)
-        return bool(any(h.dist_sq(y)[0] < r2 for y, r2 in zip(anchor_frames, R2) if r2 > 0))
+    def covers(g: np.ndarray) -> np.ndarray:
+        h = hulls(np.asarray(g, dtype=np.float64))
+        out = np.zeros(len(g) - 1, dtype=bool)
+        for y, r2 in zip(anchor_frames, R2):
+            if r2 > 0:
+                out |= h.dist_sq(y) < r2
+        return out
 
     return covers
 
@@ -267,6 +282,6 @@ def coverage_rule(name: str, num_anchors: int = 9, imaging: str = "paper"):
     return rules[name]
 
 
-__all__ = ["COVERAGES", "FRONTIER_SPLITS", "AdaptiveAnchorsRule", "AnchorsRule", "PairwiseRule", "PaperRule", "anchor_indices", "cohen_radii",
+__all__ = ["COVERAGES", "FRONTIER_PARTS", "FRONTIER_ROUNDS", "AdaptiveAnchorsRule", "AnchorsRule", "PairwiseRule", "PaperRule", "anchor_indices", "cohen_radii",
            "covered_radius", "coverage_rule", "frontier_reach", "segment_covers",
            "packing_bound", "paper_reach", "symmetric_reach"]

@@ -551,16 +551,20 @@ def segment_hulls(renderer: SurfelRenderer, alphas, *, max_bytes: int = 1 << 30)
 
 
 def segment_hull(renderer: SurfelRenderer, lo: float, hi: float):
-    """``hull(a, b)``: the :class:`HullValues` of one segment ``[a, b]`` inside ``[lo, hi]`` (the same sweep as
-    :func:`segment_hulls`, set up once), for segments chosen one at a time (:func:`.coverage.frontier_reach`)."""
+    """``hulls(g)``: the :class:`HullValues` of the segments of an increasing grid ``g`` inside ``[lo, hi]``
+    (the sweep of :func:`segment_hulls`, set up once over ``[lo, hi]``), for grids chosen one after
+    another (:func:`.coverage.frontier_reach`)."""
     sweep = _HullSweep(renderer, float(lo), float(hi))
 
-    def hull(a: float, b: float) -> HullValues:
-        require(lo <= a < b <= hi, f"segment [{a!r}, {b!r}] is not inside [{lo!r}, {hi!r}]")
-        l, h, c = sweep.segment(float(a), float(b))
-        return HullValues(np.array([a, b], dtype=np.float64), l[None], h[None], c[None], {"surfels": renderer.num_points, "segments": 1})
+    def hulls(g) -> HullValues:
+        g = np.asarray(g, dtype=np.float64)
+        require(len(g) >= 2 and lo <= g[0] and g[-1] <= hi and bool(np.all(np.diff(g) > 0)),
+                f"grid {g!r} is not increasing inside [{lo!r}, {hi!r}]")
+        parts = [sweep.segments(g[s:s + sweep.batch + 1]) for s in range(0, len(g) - 1, sweep.batch)]
+        l, h, c = (np.concatenate([p[k] for p in parts]) for k in range(3))
+        return HullValues(g, l, h, c, {"surfels": renderer.num_points, "segments": len(g) - 1})
 
-    return hull
+    return hulls
 
 
 HULL_BATCH_ELEMENTS = 300_000   # surfel-segments bounded per batch of segments (about 0.5 KB each at the peak: ~160 MB)
