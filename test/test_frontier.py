@@ -1,7 +1,7 @@
-"""The frontier bisection of the covered radius (core.coverage.frontier_reach) and what it certifies.
+"""The frontier refinement of the covered radius (core.coverage.frontier_reach) and what it certifies.
 
 1. ``frontier_reach`` against a plain-loop reference on random coverage oracles.
-2. Surfel certificates (adaptive anchors, frontier bisection, the weak-frame budget) checked end to end
+2. Surfel certificates (adaptive anchors, frontier refinement, the weak-frame budget) checked end to end
    with the brute-force renderer of test_imaging (loops, float64, no production renderer or bound):
    every pose inside the certified radius renders within the Cohen radius of one of the anchors.
 """
@@ -154,8 +154,8 @@ def test_surfel_certificate_holds_under_brute_force_rendering(seed, axis, z, num
         assert np.any(d2 < R ** 2), f"alpha = {a!r}: {np.sqrt(d2)} vs R = {R}"
 
 
-def test_frontier_bisection_widens_a_short_certificate(tiny_model):
-    """Non-vacuous: on a frame the grid leaves short, the bisection points are in the certificate's plan
+def test_frontier_refinement_widens_a_short_certificate(tiny_model):
+    """Non-vacuous: on a frame the grid leaves short, the refinement points are in the certificate's plan
     and the radius is one of them."""
     rng = np.random.default_rng(11)
     cloud = random_cloud(rng, ties=False)
@@ -174,7 +174,7 @@ def test_frontier_bisection_widens_a_short_certificate(tiny_model):
 @settings(max_examples=15, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), axis=st.sampled_from(("tx", "ty", "tz", "rx", "ry", "rz")))
 def test_segment_hull_of_a_sub_segment_holds_under_brute_force(seed, axis):
-    """The one-segment bounds the bisection uses (set up once over the plan's range, then any sub-segment)
+    """The bounds the frontier refinement uses (set up once over the plan's range, then any sub-grid)
     contain the brute-force frames of that sub-segment, and equal segment_hulls on it."""
     from pws_ros.core.imaging import SurfelRenderer, segment_hull, segment_hulls
 

@@ -406,7 +406,7 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, rule: AdaptiveAnchor
         "frontier_splits": len(splits),
     }
     if splits:
-        # the grid the certificate rests on holds the bisection points (self-audits check their segments)
+        # the grid the certificate rests on holds the refinement points (self-audits check their segments)
         alphas = np.union1d(plan.alphas, np.asarray(splits, dtype=np.float64))
         plan = Plan(plan.method, plan.axis, plan.radius, float(np.diff(alphas).max()), len(alphas), alphas, plan.unit,
                     dict(plan.details, frontier_splits=len(splits)))
