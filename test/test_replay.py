@@ -539,12 +539,14 @@ def test_help_explains_everything(capsys):
 def test_real_realsense_depth_is_registered_with_the_recorded_extrinsics(models, tmp_path, capsys):
     """Not registered (depth fx 390, colour fx 613), but the recorder's extrinsics are in the bag: the
     depth is registered into the colour camera (said once) and certified. Its depth and colour are
-    ~100 ms apart, hence --sync-tolerance (more in test_registration_inputs.py)."""
+    101.6 ms apart: with the default sync they pair as each other's nearest (one warning names the skew),
+    and --sync-max-skew 0 refuses them (more in test_registration_inputs.py)."""
     out = tmp_path / "o"
-    rc, _o, err = run_cli([shared_path("realsense_single_rgbd"), "--out", out, "--model", models["linear"], "--sync-tolerance", "0.15",
+    rc, _o, err = run_cli([shared_path("realsense_single_rgbd"), "--out", out, "--model", models["linear"],
                            *[a for a in TINY if a != "--quiet"]], capsys)
     assert rc == 0, err
     assert err.count("depth registered into the colour camera") == 1 and "/device_0/sensor_1/Color_0/tf/0" in err
+    assert err.count("101.6 ms apart") == 1
     ((_lt, _stamp, payload),) = certifications(out)
     assert payload["tz"]["status"] in ("certified", "not_certified", "abstain")
 
