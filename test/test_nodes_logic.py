@@ -536,3 +536,28 @@ def cloud_xyz(msg):
     rows = np.frombuffer(bytes(msg.data), np.uint8).reshape(-1, msg.point_step)
     xyz = np.stack([rows[:, offsets[a]:offsets[a] + 4].copy().view("<f4")[:, 0] for a in "xyz"], axis=1).astype(np.float64)
     return xyz[np.isfinite(xyz).all(axis=1)]
+
+
+def test_pipeline_pairs_unsynced_depth_and_colour_with_a_warning(bus, model_path):
+    """A driver whose depth and colour are 60 ms apart (beyond sync_tolerance_s, within sync_max_skew_s):
+    the pair is certified once a later colour frame settles it, and one WARN names the skew."""
+    from pws_ros.nodes.pipeline import PipelineNode
+
+    ctx = Context(bus, "pipeline", **params(model_path, axes=["tz"]))
+    node = PipelineNode(ctx)
+    try:
+        ms = 1_000_000
+        for stamp, topics in ((T0, ("/cam/info", "/cam/color")), (T0 + 60 * ms, ("/cam/depth",)),
+                              (T0 + 500 * ms, ("/cam/color",)), (T0 + 560 * ms, ("/cam/depth",))):
+            msgs = frame_messages(stamp)
+            for topic in topics:
+                bus.publish(topic, msgs[topic])
+        assert wait_for(lambda: len(bus.published["/certification"]) >= 1)
+        cert = bus.published["/certification"][0]
+        assert msgconv.header_stamp_ns(cert) == T0                       # the colour frame's stamp
+        skew = [m for lv, m in ctx.logs if lv == "warn" and "60.0 ms apart" in m]
+        assert len(skew) == 1 and "sync_max_skew_s" in skew[0]
+        time.sleep(0.3)
+        assert len(bus.published["/certification"]) == 1                  # the last depth waits to be settled
+    finally:
+        node.close()
