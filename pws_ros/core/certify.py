@@ -16,7 +16,9 @@ The method on one screen (Theorems 1-3 of the paper with the per-segment bounds 
    * ``anchors``: some anchor ``a`` has ``D_i(x_a) < R_a`` (``p_A`` estimated at ``K`` anchors only; with
      surfel imaging the anchors are placed from the distance bounds, :class:`.coverage.AdaptiveAnchorsRule`).
 6. The certified radius is the largest ``r`` such that every segment inside ``[-r, r]`` is covered; the
-   certificate holds for ``[-b, b]`` iff it reaches ``b``.
+   certificate holds for ``[-b, b]`` iff it reaches ``b``. With the adaptive anchors, a covered run that
+   stops inside a grid segment is extended by refining that segment once the radii are known
+   (:func:`.coverage.frontier_reach`; coverage is a fact of the bounds on any grid).
 """
 from __future__ import annotations
 
