@@ -276,3 +276,17 @@ def test_self_audit_every_frame_and_a_wrong_bound_withdraws_the_certificate(mode
     (c,) = eng.process(cloud, small_camera, 2).certificates
     assert c.status == "error" and "self-audit found" in c.reason and c.bounds["audit"]["violations"] > 0
     assert any(level == "error" and "self-audit" in m for level, m in logs)
+
+
+def test_size_advice_for_models_much_larger_than_the_demo():
+    """A 224x224 model on a 640x480 camera: render_factor 2 renders 448x448 and batch_size 256 holds
+    154 MB of input per call: both are said; the shipped defaults (160x90) get no advice."""
+    from pws_ros.bridge.engine import size_advice
+    from pws_ros.core.camera import CameraIntrinsics
+    from pws_ros.core.imaging import make_imaging
+
+    cam = CameraIntrinsics(640, 480, 525.0, 525.0, 319.5, 239.5, "cam")
+    big = size_advice(make_imaging("surfel", cam, (224, 224), border=0, render_factor=2), 256)
+    assert len(big) == 2 and "448x448" in big[0] and "render_factor: 1" in big[0] and "batch_size 256" in big[1]
+    assert size_advice(make_imaging("surfel", cam, (224, 224), border=0, render_factor=1), 32) == []
+    assert size_advice(make_imaging("surfel", cam, (90, 160), border=0, render_factor=2), 256) == []
