@@ -21,7 +21,7 @@ on any grid).
   ``num_anchors`` anchors placed from the distance bounds and the ``n0`` selection samples (``K`` = the
   anchors placed, ``<= num_anchors``); the set is fixed before the estimation samples are drawn, so the
   ``K`` bounds at ``alpha / K`` stay valid (:mod:`.anchors`). The radius is the covered run around 0
-  on the refined grid.
+  on the refined grid, extended by :func:`frontier_reach` where it stops inside a grid segment.
 
 Every rule covers a segment only if every frame of it lies strictly within the Cohen radius of an
 estimated frame, so the smoothed prediction is constant on the covered interval with probability at
