@@ -159,17 +159,17 @@ def test_frontier_refinement_widens_a_short_certificate(tiny_model):
 
 @settings(max_examples=15, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), axis=st.sampled_from(("tx", "ty", "tz", "rx", "ry", "rz")))
-def test_segment_hull_of_a_sub_segment_holds_under_brute_force(seed, axis):
+def test_hulls_within_a_range_hold_under_brute_force(seed, axis):
     """The bounds the frontier refinement uses (set up once over the plan's range, then any sub-grid)
     contain the brute-force frames of that sub-segment, and equal segment_hulls on it."""
-    from pws_ros.core.imaging import SurfelRenderer, segment_hull, segment_hulls
+    from pws_ros.core.imaging import SurfelRenderer, hulls_within, segment_hulls
 
     rng = np.random.default_rng(seed)
     cloud = random_cloud(rng, ties=bool(seed % 2))
     im = make_imaging("surfel", CAM, (3, 4), background=0.5, border=0)
     r = SurfelRenderer(cloud, im, axis)
     b = SCALE[axis]
-    hulls = segment_hull(r, -b, b)
+    hulls = hulls_within(r, -b, b)
     for _ in range(2):
         g = np.sort(rng.uniform(-b, b, 4))
         h = hulls(g)

@@ -35,7 +35,7 @@ from .bounds import SegmentValues
 from .camera import CameraIntrinsics
 from .cloud import Cloud
 from .errors import require
-from .imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, segment_bounds, segment_hull, segment_hulls
+from .imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, hulls_within, segment_bounds, segment_hulls
 from .model import LoadedModel
 from .coverage import COVERAGES, AdaptiveAnchorsRule, cohen_radii, coverage_rule, frontier_reach, packing_bound, segment_covers
 from .motion import UNITS, parse_axis
@@ -391,8 +391,8 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, rule: AdaptiveAnchor
     if reach < plan.radius and R[0] > 0:
         # the covered run stops inside a grid segment: refine it with the radii now known (frontier_reach)
         t0 = time.perf_counter()
-        hull = segment_hull(renderer, float(plan.alphas[0]), float(plan.alphas[-1]))
-        reach, splits = frontier_reach(segment_covers(hull, frames[est_idx], R), plan.alphas, covered, centre)
+        sub_hulls = hulls_within(renderer, float(plan.alphas[0]), float(plan.alphas[-1]))
+        reach, splits = frontier_reach(segment_covers(sub_hulls, frames[est_idx], R), plan.alphas, covered, centre)
         timings = dict(timings, bounds=timings.get("bounds", 0.0) + time.perf_counter() - t0)
     t1 = time.perf_counter()
     steps = np.sqrt(np.sum((frames[1:].astype(np.float64) - frames[:-1]) ** 2, axis=(1, 2, 3)))

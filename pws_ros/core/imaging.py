@@ -540,29 +540,28 @@ def segment_hulls(renderer: SurfelRenderer, alphas, *, max_bytes: int = 1 << 30)
     need = 2 * S * h * w * 3 * 4
     require(need <= max_bytes, f"bounds of {S} segments at {w}x{h} need {need / 2**20:.0f} MiB, more than "
                                f"{max_bytes / 2**20:.0f} MiB: use fewer partitions")
-    lo = np.empty((S, h, w, 3), np.float32)
-    hi = np.empty((S, h, w, 3), np.float32)
-    constant = np.empty((S, h, w), bool)
-    sweep = _HullSweep(renderer, float(alphas[0]), float(alphas[-1]))
-    for s in range(0, S, sweep.batch):
-        e = min(S, s + sweep.batch)
-        lo[s:e], hi[s:e], constant[s:e] = sweep.segments(alphas[s:e + 1])
-    return HullValues(alphas, lo, hi, constant, {"surfels": renderer.num_points, "segments": S})
+    return hulls_within(renderer, float(alphas[0]), float(alphas[-1]))(alphas)
 
 
-def segment_hull(renderer: SurfelRenderer, lo: float, hi: float):
-    """``hulls(g)``: the :class:`HullValues` of the segments of an increasing grid ``g`` inside ``[lo, hi]``
-    (the sweep of :func:`segment_hulls`, set up once over ``[lo, hi]``), for grids chosen one after
-    another (:func:`.coverage.frontier_reach`)."""
+def hulls_within(renderer: SurfelRenderer, lo: float, hi: float):
+    """``hulls(g)``: the :class:`HullValues` of the segments of an increasing grid ``g`` inside ``[lo, hi]``,
+    bounded in batches of segments by one sweep set up once over ``[lo, hi]``; for grids chosen one after
+    another (:func:`.coverage.frontier_reach`) as for one whole plan (:func:`segment_hulls`)."""
     sweep = _HullSweep(renderer, float(lo), float(hi))
+    h, w = renderer.imaging.out_shape
 
     def hulls(g) -> HullValues:
         g = np.asarray(g, dtype=np.float64)
         require(len(g) >= 2 and lo <= g[0] and g[-1] <= hi and bool(np.all(np.diff(g) > 0)),
                 f"grid {g!r} is not increasing inside [{lo!r}, {hi!r}]")
-        parts = [sweep.segments(g[s:s + sweep.batch + 1]) for s in range(0, len(g) - 1, sweep.batch)]
-        l, h, c = (np.concatenate([p[k] for p in parts]) for k in range(3))
-        return HullValues(g, l, h, c, {"surfels": renderer.num_points, "segments": len(g) - 1})
+        S = len(g) - 1
+        l_ = np.empty((S, h, w, 3), np.float32)
+        h_ = np.empty((S, h, w, 3), np.float32)
+        constant = np.empty((S, h, w), bool)
+        for s in range(0, S, sweep.batch):
+            e = min(S, s + sweep.batch)
+            l_[s:e], h_[s:e], constant[s:e] = sweep.segments(g[s:e + 1])
+        return HullValues(g, l_, h_, constant, {"surfels": renderer.num_points, "segments": S})
 
     return hulls
 
@@ -633,10 +632,6 @@ class _HullSweep:
     def segments(self, g) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``lo, hi`` (B, h, w, 3) float32 and ``constant`` (B, h, w) of the segments of the grid ``g``."""
         return self._bound(*self.ranges(g))
-
-    def segment(self, a: float, b: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        lo, hi, one = self.segments([a, b])
-        return lo[0], hi[0], one[0]
 
     def maybe_visible(self, a: float, b: float) -> np.ndarray:
         """Surfels that can cover a native pixel for some alpha in ``[a, b]`` (a superset)."""
@@ -741,4 +736,4 @@ def _block_mean64(x: torch.Tensor, im: Imaging) -> torch.Tensor:
 
 __all__ = ["AXES", "DEFAULT_RENDER_FACTOR", "EDGE_EPS", "HullValues", "IMAGING_KINDS", "Imaging", "SURFEL_OVERLAP",
            "SurfelRenderer", "auto_border", "bin_cloud", "make_imaging", "make_renderer", "occlusion_key", "plan_for", "reduce_frames",
-           "render_plan_surfel", "segment_bounds", "segment_hull", "segment_hulls", "surfel_corners"]
+           "render_plan_surfel", "hulls_within", "segment_bounds", "segment_hulls", "surfel_corners"]

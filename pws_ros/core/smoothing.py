@@ -247,9 +247,7 @@ class SmoothedClassifier:
                     batch = noise.mul_(self.sigma).add_(sub.index_select(0, local))
                 pred = self._classify(batch, use_denoiser=True)
                 if counts is None:
-                    C = self.model.num_classes
-                    require(C >= 1, f"model {getattr(self.model, 'path', '')} has no known number of classes")
-                    counts = torch.zeros(B * C, dtype=torch.long, device=self.device)
+                    counts = self._zero_counts(B).view(-1)
                 C = counts.numel() // B
                 counts.index_add_(0, (local + f0) * C + pred, torch.ones_like(pred))
                 if progress is not None:
@@ -259,6 +257,12 @@ class SmoothedClassifier:
             self.inference_seconds += time.perf_counter() - t0
         assert counts is not None
         return counts.view(B, -1).cpu()
+
+    def _zero_counts(self, B: int) -> torch.Tensor:
+        """``(B, C)`` vote counters; after the first classifier call (a model may learn C from its output)."""
+        C = self.model.num_classes
+        require(C >= 1, f"model {getattr(self.model, 'path', '')} has no known number of classes")
+        return torch.zeros((B, C), dtype=torch.long, device=self.device)
 
     def _common_counts(self, chw: torch.Tensor, num: int, progress: Callable[[int, int], None] | None) -> torch.Tensor:
         """:meth:`sample_counts` with ``common_noise``: one noise batch serves every frame in turn."""
@@ -275,9 +279,7 @@ class SmoothedClassifier:
                     torch.add(noise, chw[k].to(self.device), out=x)
                     pred = self._classify(x, use_denoiser=True)
                     if counts is None:
-                        C = self.model.num_classes
-                        require(C >= 1, f"model {getattr(self.model, 'path', '')} has no known number of classes")
-                        counts = torch.zeros((B, C), dtype=torch.long, device=self.device)
+                        counts = self._zero_counts(B)
                     C = counts.shape[1]
                     require(int(pred.max()) < C, f"model output has more than the {C} classes it declares")
                     counts[k] += torch.bincount(pred, minlength=C)
