@@ -153,6 +153,30 @@ def test_segment_bounds_hold_for_dense_alphas(seed, axis, ties, nseg):
             assert ((f - y) ** 2).sum() <= hulls.dist_sq(y)[i]
 
 
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), axis=st.sampled_from(AXES), nseg=st.integers(1, 3))
+def test_large_footprints_and_long_sweeps_equal_the_brute_force(seed, axis, nseg):
+    """Points a few centimetres from the camera (footprints many pixels wide, sweeping across the image,
+    crossing the camera plane) and long segments: the renderer equals the brute force at the grid
+    poses and every frame of a segment lies inside its bounds."""
+    rng = np.random.default_rng(seed)
+    cloud = random_cloud(rng, False)
+    near = rng.uniform([-0.05, -0.05, 0.03], [0.05, 0.05, 0.12], (5, 3))
+    cloud = Cloud(np.concatenate([cloud.points, near]), np.concatenate([cloud.colors, rng.random((5, 3)).astype(np.float32)]))
+    im = make_imaging("surfel", CAM, (3, 4), background=0.5, border=0)
+    b = {"tx": 0.05, "ty": 0.05, "tz": 0.1, "rx": 0.4, "ry": 0.4, "rz": 0.8}[axis] * rng.uniform(0.5, 1.0)
+    alphas = make_grid(b, b / nseg)
+    r = SurfelRenderer(cloud, im, axis)
+    hulls = segment_hulls(r, alphas)
+    frames = r.render_batch(alphas).numpy()
+    for i, a in enumerate(alphas):
+        np.testing.assert_allclose(frames[i], reference_frame(cloud.points, cloud.colors, im, axis, a), atol=1e-6)
+    for i in range(len(alphas) - 1):
+        for a in rng.uniform(alphas[i], alphas[i + 1], 8):
+            f = reference_frame(cloud.points, cloud.colors, im, axis, a)
+            assert np.all(f >= hulls.lo[i] - 1e-7) and np.all(f <= hulls.hi[i] + 1e-7), (axis, i, a)
+
+
 def test_bounds_are_tight_where_nothing_changes():
     """A fronto-parallel wall moving along tz by a fraction of a pixel: the hull of each segment is the
     two end frames (within float margins), not the background."""

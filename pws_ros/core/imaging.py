@@ -40,9 +40,9 @@ segment: the colours of every surfel whose footprint can cover its centre there 
 covering surfel always hides, plus the background unless some surfel surely covers it throughout.
 Footprint corners are monotone between the split points of :func:`.motion.split_events`, so their
 ranges over the segment are read at its ends and at those split points, widened by ``EDGE_EPS`` pixels
-for float rounding. The occlusion order is the renderer's own constant key (the same float64 tensor),
-so a surfel that surely covers a pixel throughout the segment hides every greater key, and equal keys
-follow the lower-index rule exactly: no depth tolerance is needed.
+for float rounding. The renderer ranks its surfels in occlusion order (key, then index: one constant
+order for the whole motion), so a surfel that surely covers a pixel throughout the segment hides every
+later surfel, equal keys included, by one comparison of ranks: no depth tolerance is needed.
 The block mean is linear with positive weights, so the output pixel of every frame of the segment lies
 in the block means of ``lo`` and ``hi`` (widened by ``VALUE_EPS`` for float32 rounding). Distances to
 any frame ``y`` are then bounded by ``sum max((lo - y)^2, (hi - y)^2)`` (:class:`HullValues`).
@@ -217,11 +217,17 @@ class SurfelRenderer:
 
     def _set_points(self, pts: np.ndarray, colors: np.ndarray) -> None:
         self.num_points = len(pts)
+        # the occlusion order as ranks (occlusion_key, then the index: a stable sort): surfel i hides surfel j
+        # wherever both cover a pixel iff rank[i] < rank[j]; the renderer and the bounds compare ranks only
+        order = np.argsort(occlusion_key(pts), kind="stable")
+        rank = np.empty(len(pts), np.int64)
+        rank[order] = np.arange(len(pts))
+        self.rank = torch.as_tensor(rank, device=self.device)
+        self.by_rank = torch.as_tensor(np.append(order, len(pts)), device=self.device)  # rank -> index, P -> P
         self.points_np, self.colors_np = pts, colors
         self.corners_np = surfel_corners(pts, self.intr)                     # (4, P, 3)
         self.points = torch.as_tensor(pts, device=self.device)
         self.corners = torch.as_tensor(self.corners_np, device=self.device)
-        self.order_key = torch.as_tensor(occlusion_key(pts), device=self.device)
         bg = np.full((1, 3), self.background, dtype=np.float32)
         self.colors = torch.as_tensor(np.concatenate([colors, bg]), device=self.device)
 
@@ -244,16 +250,10 @@ class SurfelRenderer:
         if n == 0:
             return idx.view(B, H, W)
         umin, umax, vmin, vmax, zc, drawn = self.footprints(alphas)
-        b_i, p_i, pix = covered_pairs(umin, umax, vmin, vmax, drawn, self.samples, 0.0)
-        if not len(p_i):
-            return idx.view(B, H, W)
-        key = b_i * (H * W) + pix
-        zz = self.order_key[p_i]
-        zmin = torch.full((B * H * W,), float("inf"), dtype=torch.float64, device=self.device)
-        zmin.scatter_reduce_(0, key, zz, reduce="amin", include_self=True)
-        at_min = zz == zmin[key]
-        idx.scatter_reduce_(0, key[at_min], p_i[at_min], reduce="amin", include_self=True)
-        return idx.view(B, H, W)
+        p_i, where, _ = covered_pairs(umin, umax, vmin, vmax, drawn, self.samples, 0.0)
+        # the covering surfel first in occlusion order (the least rank, see _set_points)
+        idx.scatter_reduce_(0, where, self.rank[p_i], reduce="amin", include_self=True)
+        return self.by_rank[idx].view(B, H, W)
 
     def render_native(self, alphas) -> torch.Tensor:
         """Native-resolution frames (B, Hn, Wn, 3) float32, before reduction and border."""
@@ -299,6 +299,21 @@ def bin_cloud(points: np.ndarray, colors: np.ndarray, imaging: Imaging) -> tuple
     if s == 1:
         return points, colors
     cam = imaging.camera
+    # the plan and the renderer of every axis of a frame bin the same cloud: the latest result is kept
+    # (one entry; the same array objects, unchanged contents, the same camera)
+    key = (cam, s, points.shape, float(np.sum(points)), float(np.sum(colors, dtype=np.float64)))
+    for p_, c_, k_, out_ in _LAST_BINS:
+        if p_ is points and c_ is colors and k_ == key:
+            return out_
+    out_ = _bin(points, colors, cam)
+    _LAST_BINS[:] = [(points, colors, key, out_)]
+    return out_
+
+
+_LAST_BINS: list = []
+
+
+def _bin(points: np.ndarray, colors: np.ndarray, cam: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
     front = points[:, 2] > 0
     pts, cols = points[front], colors[front]
     if not len(pts):
@@ -354,49 +369,64 @@ class SamplePoints:
         self.sv = torch.as_tensor((r + 0.5 + jy).reshape(-1), device=device)
 
 
-SMALL_BOX = 4  # boxes up to this many pixels a side are enumerated offset by offset (the common case)
 
-
-def covered_pairs(umin, umax, vmin, vmax, mask, samples: SamplePoints, eps: float):
-    """(batch, point, pixel) of every native pixel whose sample point lies in the box
+def covered_pairs(umin, umax, vmin, vmax, mask, samples: SamplePoints, eps: float, inner=None):
+    """``(point, where, inside)`` of every native pixel whose sample point lies in the box
     ``[umin - eps, umax + eps) x [vmin - eps, vmax + eps)`` of a point where ``mask`` (arrays (B, P);
-    ``eps`` < 0 shrinks the boxes)."""
+    ``eps`` < 0 shrinks the boxes), ``where = b * H * W + pixel`` for batch element ``b``. With
+    ``inner = (umin, umax, vmin, vmax, mask, eps)`` of boxes inside these, ``inside`` flags the pairs whose
+    sample also lies in the inner box (else None)."""
     W, H = samples.W, samples.H
     B, P = umin.shape
-    c0 = torch.ceil(umin - eps - 0.5 - SAMPLE_JITTER).clamp(0, W).long()
-    c1 = torch.maximum(torch.ceil(umax + eps - 0.5 + SAMPLE_JITTER).clamp(0, W).long(), c0)
-    r0 = torch.ceil(vmin - eps - 0.5 - SAMPLE_JITTER).clamp(0, H).long()
-    r1 = torch.maximum(torch.ceil(vmax + eps - 0.5 + SAMPLE_JITTER).clamp(0, H).long(), r0)
-    nc, nr = (c1 - c0).view(-1), (r1 - r0).view(-1)
-    mask = mask.reshape(-1)
-    small = mask & (nc <= SMALL_BOX) & (nr <= SMALL_BOX)
-    flats, pixs = [], []
-    for dr in range(SMALL_BOX):
-        okr = small & (nr > dr)
-        for dc in range(SMALL_BOX):
-            f = torch.nonzero(okr & (nc > dc), as_tuple=True)[0]
-            if not len(f):
-                break
-            flats.append(f)
-            pixs.append((r0.view(-1)[f] + dr) * W + c0.view(-1)[f] + dc)
-    big = torch.nonzero(mask & ~small, as_tuple=True)[0]
-    if len(big):  # large boxes (a point near the camera plane, long sweeps): enumerate each
-        cnt = nc[big] * nr[big]
-        rep = torch.repeat_interleave(torch.arange(len(big), device=c0.device), cnt)
-        t = torch.arange(int(cnt.sum()), device=c0.device) - (torch.cumsum(cnt, 0) - cnt)[rep]
-        f = big[rep]
-        ncr = nc[f]
-        flats.append(f)
-        pixs.append((r0.view(-1)[f] + torch.div(t, ncr, rounding_mode="floor")) * W + c0.view(-1)[f] + t % ncr)
-    if not flats:
-        z = torch.zeros(0, dtype=torch.long, device=c0.device)
-        return z, z, z
-    f, pix = torch.cat(flats), torch.cat(pixs)
-    su, sv = samples.su[pix], samples.sv[pix]
-    ok = ((umin.reshape(-1)[f] - eps <= su) & (su < umax.reshape(-1)[f] + eps)
-          & (vmin.reshape(-1)[f] - eps <= sv) & (sv < vmax.reshape(-1)[f] + eps))
-    f, pix = f[ok], pix[ok]
-    return torch.div(f, P, rounding_mode="floor"), f % P, pix
+    dev = umin.device
+    # the pixels whose sample can lie in the box: columns c0 <= c < c1, rows r0 <= r < r1
+    c0 = torch.ceil(umin - (eps + 0.5 + SAMPLE_JITTER)).clamp_(0, W).long().view(-1)
+    c1 = torch.ceil(umax + (eps - 0.5 + SAMPLE_JITTER)).clamp_(0, W).long().view(-1)
+    r0 = torch.ceil(vmin - (eps + 0.5 + SAMPLE_JITTER)).clamp_(0, H).long().view(-1)
+    r1 = torch.ceil(vmax + (eps - 0.5 + SAMPLE_JITTER)).clamp_(0, H).long().view(-1)
+    nc, nr = c1.sub_(c0), r1.sub_(r0)
+    live = mask.reshape(-1) & (nc > 0) & (nr > 0)
+    base = r0.mul_(W).add_(c0)
+    lo_u, hi_u = (umin - eps).view(-1), (umax + eps).view(-1)
+    lo_v, hi_v = (vmin - eps).view(-1), (vmax + eps).view(-1)
+    if inner is not None:
+        iu0, iu1, iv0, iv1, imask, ieps = inner
+        inner = ((iu0 - ieps).view(-1), (iu1 + ieps).view(-1), (iv0 - ieps).view(-1), (iv1 + ieps).view(-1), imask.reshape(-1))
+
+    def test(pix, lu, hu, lv, hv):   # the samples of pixels pix, and whether they lie in the boxes given
+        su, sv = samples.su[pix], samples.sv[pix]
+        ok = (lu <= su) & (su < hu) & (lv <= sv) & (sv < hv)
+        return ok, su, sv
+
+    points, wheres, insides = [], [], []
+
+    def keep(f, pix, su, sv, box=lambda x: x):
+        points.append(f % P)
+        wheres.append(torch.div(f, P, rounding_mode="floor").mul_(H * W).add_(pix))
+        if inner is not None:
+            u0, u1, v0, v1, m = (box(x) for x in inner)
+            insides.append(m & (u0 <= su) & (su < u1) & (v0 <= sv) & (sv < v1))
+
+    # the 2x2 corner of every box, offset by offset over all boxes at once (no per-pair gathers)
+    wide, tall = nc > 1, nr > 1
+    for sel, off in ((live, 0), (live & wide, 1), (live & tall, W), (live & wide & tall, W + 1)):
+        pix = (base + off).clamp_(0, H * W - 1)
+        ok, su, sv = test(pix, lo_u, hi_u, lo_v, hi_v)
+        f = torch.nonzero(ok.logical_and_(sel), as_tuple=True)[0]
+        keep(f, pix[f], su[f], sv[f], box=lambda x, f=f: x[f])
+    more = torch.nonzero(live & ((nc > 2) | (nr > 2)), as_tuple=True)[0]
+    if len(more):  # boxes over 2 pixels a side (a point near the camera plane, long sweeps): the rest of each
+        cnt = nc[more] * nr[more]
+        rep = torch.repeat_interleave(torch.arange(len(more), device=dev), cnt)
+        t = torch.arange(int(cnt.sum()), device=dev) - (torch.cumsum(cnt, 0) - cnt)[rep]
+        f, ncr = more[rep], nc[more][rep]
+        dr, dc = torch.div(t, ncr, rounding_mode="floor"), t % ncr
+        rest = (dr > 1) | (dc > 1)
+        f, pix = f[rest], base[f[rest]] + dr[rest] * W + dc[rest]
+        ok, su, sv = test(pix, lo_u[f], hi_u[f], lo_v[f], hi_v[f])
+        f = f[ok]
+        keep(f, pix[ok], su[ok], sv[ok], box=lambda x, f=f: x[f])
+    return torch.cat(points), torch.cat(wheres), (torch.cat(insides) if inner is not None else None)
 
 
 def reduce_frames(native: torch.Tensor, imaging: Imaging) -> torch.Tensor:
@@ -418,11 +448,13 @@ def make_renderer(cloud: Cloud, imaging: Imaging, axis: str, *, device: str | to
 def plan_for(cloud: Cloud, imaging: Imaging, axis: str, radius: float, method: str = "pws_of", *,
              step_px: float = DEFAULT_STEP_PX, delta: float | None = None, max_partitions: int = DEFAULT_FRAME_BUDGET,
              min_partitions: int = 0) -> Plan:
-    """The plan of ``imaging``: the step rule of :func:`.partition.plan_step` for surfel imaging, the
+    """The plan of ``imaging``: the step rule of :func:`.partition.plan_step` for surfel imaging (on the
+    surfels that are drawn: the cloud binned by :func:`bin_cloud`, in the rendered camera), the
     paper's methods (:func:`.partition.plan_partitions`, ``delta`` for PwS-OF) for paper imaging."""
-    if imaging.kind == "surfel":
-        return plan_step(cloud, imaging.camera, axis, radius, method, step_px=step_px,
-                         max_partitions=max_partitions, min_partitions=min_partitions)
+    if imaging.kind == "surfel":  # the speeds of the surfels that are rendered (the binned cloud)
+        pts, cols = bin_cloud(np.asarray(cloud.points, dtype=np.float64), np.asarray(cloud.colors, np.float32), imaging)
+        return plan_step(Cloud(pts, cols) if len(pts) and pts is not cloud.points else cloud, imaging.camera, axis, radius, method,
+                         step_px=step_px, max_partitions=max_partitions, min_partitions=min_partitions)
     return plan_partitions(cloud, imaging.camera, axis, radius, method, delta=delta,
                            max_partitions=max_partitions, min_partitions=min_partitions)
 
@@ -658,35 +690,23 @@ class _HullSweep:
         sw_v0 = v_lo.amin(1).masked_fill_(wild, -big)
         sw_v1 = v_hi.amax(1).masked_fill_(wild, big)
         # surely covered: left edge at its rightmost, right edge at its leftmost (module doc)
-        su0, su1 = u_hi.amin(1).view(-1), u_lo.amax(1).view(-1)
-        sv0, sv1 = v_hi.amin(1).view(-1), v_lo.amax(1).view(-1)
-        key = r.order_key   # constant in alpha: one comparison orders two surfels for the whole segment
-        # candidates: possibly covering at some alpha of the segment
-        bi, cp, cpix = covered_pairs(sw_u0, sw_u1, sw_v0, sw_v1, maybe, r.samples, EDGE_EPS)
-        fp = bi * P + cp          # (segment, surfel)
-        q = bi * HW + cpix        # (segment, native pixel)
-        # the surely covering pairs among them (the sure box lies inside the sweep box, sure_drawn implies maybe)
-        su, sv = r.samples.su[cpix], r.samples.sv[cpix]
-        is_sure = (sure_drawn.view(-1)[fp] & (su0[fp] + EDGE_EPS <= su) & (su < su1[fp] - EDGE_EPS)
-                   & (sv0[fp] + EDGE_EPS <= sv) & (sv < sv1[fp] - EDGE_EPS))
-        sp, sq = cp[is_sure], q[is_sure]
-        # the least key of a surely covering surfel, per segment and native pixel: it always hides greater keys
-        sure_far = torch.full((B * HW,), float("inf"), dtype=torch.float64, device=dev)
-        if len(sp):
-            sure_far.scatter_reduce_(0, sq, key[sp], reduce="amin", include_self=True)
-        limit = sure_far[q]
-        kc = key[cp]
-        keep = kc <= limit
-        if len(sp):
-            # equal keys: the renderer's lower-index rule decides, so a later point never shows
-            first = torch.full((B * HW,), torch.iinfo(torch.long).max, dtype=torch.long, device=dev)
-            tied = key[sp] == sure_far[sq]
-            first.scatter_reduce_(0, sq[tied], sp[tied], reduce="amin", include_self=True)
-            keep &= ~((kc == limit) & (cp > first[q]))
+        su0, su1 = u_hi.amin(1), u_lo.amax(1)
+        sv0, sv1 = v_hi.amin(1), v_lo.amax(1)
+        # candidates: possibly covering at some alpha of the segment (q: segment and native pixel), and
+        # among them the surely covering pairs (the sure box lies inside the sweep box, sure_drawn implies maybe)
+        cp, q, is_sure = covered_pairs(sw_u0, sw_u1, sw_v0, sw_v1, maybe, r.samples, EDGE_EPS,
+                                       inner=(su0, su1, sv0, sv1, sure_drawn, -EDGE_EPS))
+        # the first surely covering surfel in occlusion order (its rank; P: none), per segment and native
+        # pixel: it hides every later surfel throughout the segment (the order is constant in alpha, equal
+        # keys included: the renderer's own ranks)
+        sure_first = torch.full((B * HW,), P, dtype=torch.long, device=dev)
+        sure_first.scatter_reduce_(0, q[is_sure], r.rank[cp[is_sure]], reduce="amin", include_self=True)
+        rc = r.rank[cp]
+        keep = rc <= sure_first[q]
         cp, q = cp[keep], q[keep]
         col = r.colors[:-1].to(torch.float64)
         bg = float(r.background)
-        open_ = torch.isinf(sure_far)
+        open_ = sure_first == P
         f64 = dict(dtype=torch.float64, device=dev)
         lo = torch.where(open_, torch.tensor(bg, **f64), torch.tensor(float("inf"), **f64))[:, None].repeat(1, 3)
         hi = torch.where(open_, torch.tensor(bg, **f64), torch.tensor(float("-inf"), **f64))[:, None].repeat(1, 3)
