@@ -393,27 +393,23 @@ def covered_pairs(umin, umax, vmin, vmax, mask, samples: SamplePoints, eps: floa
         iu0, iu1, iv0, iv1, imask, ieps = inner
         inner = ((iu0 - ieps).view(-1), (iu1 + ieps).view(-1), (iv0 - ieps).view(-1), (iv1 + ieps).view(-1), imask.reshape(-1))
 
-    def test(pix, lu, hu, lv, hv):   # the samples of pixels pix, and whether they lie in the boxes given
-        su, sv = samples.su[pix], samples.sv[pix]
-        ok = (lu <= su) & (su < hu) & (lv <= sv) & (sv < hv)
-        return ok, su, sv
+    def inside(su, sv, boxes, at=None):   # samples su, sv in the boxes (at: of these boxes only)
+        u0, u1, v0, v1 = (x if at is None else x[at] for x in boxes[:4])
+        ok = (u0 <= su) & (su < u1) & (v0 <= sv) & (sv < v1)
+        return ok.logical_and_(boxes[4] if at is None else boxes[4][at]) if len(boxes) > 4 else ok
 
     points, wheres, insides = [], [], []
-
-    def keep(f, pix, su, sv, box=lambda x: x):
-        points.append(f % P)
-        wheres.append(torch.div(f, P, rounding_mode="floor").mul_(H * W).add_(pix))
-        if inner is not None:
-            u0, u1, v0, v1, m = (box(x) for x in inner)
-            insides.append(m & (u0 <= su) & (su < u1) & (v0 <= sv) & (sv < v1))
-
     # the 2x2 corner of every box, offset by offset over all boxes at once (no per-pair gathers)
+    batch_base = base + torch.arange(B, device=dev).mul_(H * W).repeat_interleave(P)   # b * H * W + r0 * W + c0
     wide, tall = nc > 1, nr > 1
     for sel, off in ((live, 0), (live & wide, 1), (live & tall, W), (live & wide & tall, W + 1)):
         pix = (base + off).clamp_(0, H * W - 1)
-        ok, su, sv = test(pix, lo_u, hi_u, lo_v, hi_v)
-        f = torch.nonzero(ok.logical_and_(sel), as_tuple=True)[0]
-        keep(f, pix[f], su[f], sv[f], box=lambda x, f=f: x[f])
+        su, sv = samples.su[pix], samples.sv[pix]
+        f = torch.nonzero(inside(su, sv, (lo_u, hi_u, lo_v, hi_v, sel)), as_tuple=True)[0]
+        points.append(f % P)
+        wheres.append(batch_base[f] + off)
+        if inner is not None:
+            insides.append(inside(su, sv, inner)[f])
     more = torch.nonzero(live & ((nc > 2) | (nr > 2)), as_tuple=True)[0]
     if len(more):  # boxes over 2 pixels a side (a point near the camera plane, long sweeps): the rest of each
         cnt = nc[more] * nr[more]
@@ -422,10 +418,15 @@ def covered_pairs(umin, umax, vmin, vmax, mask, samples: SamplePoints, eps: floa
         f, ncr = more[rep], nc[more][rep]
         dr, dc = torch.div(t, ncr, rounding_mode="floor"), t % ncr
         rest = (dr > 1) | (dc > 1)
-        f, pix = f[rest], base[f[rest]] + dr[rest] * W + dc[rest]
-        ok, su, sv = test(pix, lo_u[f], hi_u[f], lo_v[f], hi_v[f])
-        f = f[ok]
-        keep(f, pix[ok], su[ok], sv[ok], box=lambda x, f=f: x[f])
+        f, off = f[rest], dr[rest] * W + dc[rest]
+        pix = base[f] + off
+        su, sv = samples.su[pix], samples.sv[pix]
+        ok = inside(su, sv, (lo_u, hi_u, lo_v, hi_v), f)
+        f, off, su, sv = f[ok], off[ok], su[ok], sv[ok]
+        points.append(f % P)
+        wheres.append(batch_base[f] + off)
+        if inner is not None:
+            insides.append(inside(su, sv, inner, f))
     return torch.cat(points), torch.cat(wheres), (torch.cat(insides) if inner is not None else None)
 
 
@@ -714,7 +715,8 @@ class _HullSweep:
             idx = q[:, None].expand(-1, 3)
             lo.scatter_reduce_(0, idx, col[cp], reduce="amin", include_self=True)
             hi.scatter_reduce_(0, idx, col[cp], reduce="amax", include_self=True)
-        require(bool(torch.isfinite(lo).all() and torch.isfinite(hi).all()), "internal: a pixel without any value")
+        # every pixel has a value (the background where open, its sure surfel otherwise: kept, the channels together)
+        require(not bool(torch.isinf(lo[:, 0]).any()), "internal: a pixel without any value")
         im = r.imaging
         lo_o = _block_mean64(lo.view(B, H, W, 3), im) - VALUE_EPS
         hi_o = _block_mean64(hi.view(B, H, W, 3), im) + VALUE_EPS
