@@ -235,12 +235,13 @@ class SmoothedClassifier:
             return self._common_counts(chw, num, progress)
         t0 = time.perf_counter()
         try:
+            buffer = self._noise_buffer(min(total, self.batch_size), H, W)
             for start in range(0, total, self.batch_size):
                 stop = min(total, start + self.batch_size)
                 f0, f1 = start // num, (stop - 1) // num
                 sub = chw[f0 : f1 + 1].to(self.device)
                 local = torch.arange(start, stop, device=self.device) // num - f0
-                noise = torch.randn((stop - start, 3, H, W), generator=self.generator, device=self.device, dtype=torch.float32)
+                noise = buffer[: stop - start].normal_(generator=self.generator)
                 if f0 == f1:
                     batch = noise.mul_(self.sigma).add_(sub[0])
                 else:
@@ -258,6 +259,11 @@ class SmoothedClassifier:
         assert counts is not None
         return counts.view(B, -1).cpu()
 
+    def _noise_buffer(self, n: int, H: int, W: int) -> torch.Tensor:
+        """Room for ``n`` noise images, refilled in place batch after batch (``normal_`` draws exactly what
+        ``torch.randn`` of that shape draws from the generator, without a new allocation per batch)."""
+        return torch.empty((n, 3, H, W), device=self.device, dtype=torch.float32)
+
     def _zero_counts(self, B: int) -> torch.Tensor:
         """``(B, C)`` vote counters; after the first classifier call (a model may learn C from its output)."""
         C = self.model.num_classes
@@ -271,10 +277,12 @@ class SmoothedClassifier:
         t0 = time.perf_counter()
         try:
             done = 0
+            buffer = self._noise_buffer(min(num, self.batch_size), H, W)
+            out = torch.empty_like(buffer)
             for start in range(0, num, self.batch_size):
                 b = min(self.batch_size, num - start)
-                noise = torch.randn((b, 3, H, W), generator=self.generator, device=self.device, dtype=torch.float32).mul_(self.sigma)
-                x = torch.empty_like(noise)
+                noise = buffer[:b].normal_(generator=self.generator).mul_(self.sigma)
+                x = out[:b]
                 for k in range(B):
                     torch.add(noise, chw[k].to(self.device), out=x)
                     pred = self._classify(x, use_denoiser=True)
