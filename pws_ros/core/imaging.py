@@ -705,21 +705,22 @@ class _HullSweep:
         rc = r.rank[cp]
         keep = rc <= sure_first[q]
         cp, q = cp[keep], q[keep]
-        col = r.colors[:-1].to(torch.float64)
-        bg = float(r.background)
-        open_ = sure_first == P
-        f64 = dict(dtype=torch.float64, device=dev)
-        lo = torch.where(open_, torch.tensor(bg, **f64), torch.tensor(float("inf"), **f64))[:, None].repeat(1, 3)
-        hi = torch.where(open_, torch.tensor(bg, **f64), torch.tensor(float("-inf"), **f64))[:, None].repeat(1, 3)
+        # the values of the native pixels: the renderer's own float32 colours (its background row included),
+        # their least and greatest per channel exactly
+        col = r.colors
+        open_ = (sure_first == P)[:, None]
+        lo = torch.where(open_, col[P], torch.tensor(float("inf"), dtype=col.dtype, device=dev))
+        hi = torch.where(open_, col[P], torch.tensor(float("-inf"), dtype=col.dtype, device=dev))
         if len(cp):
             idx = q[:, None].expand(-1, 3)
-            lo.scatter_reduce_(0, idx, col[cp], reduce="amin", include_self=True)
-            hi.scatter_reduce_(0, idx, col[cp], reduce="amax", include_self=True)
+            vals = col[cp]
+            lo.scatter_reduce_(0, idx, vals, reduce="amin", include_self=True)
+            hi.scatter_reduce_(0, idx, vals, reduce="amax", include_self=True)
         # every pixel has a value (the background where open, its sure surfel otherwise: kept, the channels together)
         require(not bool(torch.isinf(lo[:, 0]).any()), "internal: a pixel without any value")
         im = r.imaging
-        lo_o = _block_mean64(lo.view(B, H, W, 3), im) - VALUE_EPS
-        hi_o = _block_mean64(hi.view(B, H, W, 3), im) + VALUE_EPS
+        lo_o = _block_mean64(lo.view(B, H, W, 3).to(torch.float64), im) - VALUE_EPS
+        hi_o = _block_mean64(hi.view(B, H, W, 3).to(torch.float64), im) + VALUE_EPS
         # output pixels whose every native pixel has one value throughout: bitwise constant over the segment
         k = im.factor
         h, w = im.out_shape
