@@ -411,11 +411,11 @@ def size_advice(imaging: Any, batch_size: int) -> list[str]:
         out.append(f"render_factor {imaging.factor} renders {imaging.camera.width}x{imaging.camera.height} for a {w}x{h} model "
                    f"({rendered / DEMO_RENDER_PIXELS:.1f}x the pixels of the shipped defaults): the bounds take about that much "
                    f"longer; render_factor: 1 renders {w}x{h} from camera bins (measured on a 640x480 Kinect frame with a "
-                   "224x224 EfficientNet-Lite0: 19 s per axis instead of 33 s)")
+                   "224x224 EfficientNet-Lite0: 13-19 s per axis instead of 26-29 s)")
     if batch_size * h * w > 2 * 256 * DEMO_INPUT_PIXELS:
         out.append(f"batch_size {batch_size} of {w}x{h} inputs: one classifier call holds {batch_size * h * w * 12 / 2**20:.0f} MiB "
                    "of input and several times that in activations; on a CPU lower it (batch_size 32 with a 224x224 "
-                   "EfficientNet-Lite0: peak memory 1.7 GB instead of 4.0 GB, inference twice as fast)")
+                   "EfficientNet-Lite0: peak memory 1.4 GB instead of 3.9 GB, inference 1.6x as fast)")
     return out
 
 
