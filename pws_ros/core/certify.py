@@ -240,7 +240,9 @@ def _certify_stream(frames_at: Callable, chunks: Iterator, plan: Plan, values: S
         anchor_frames = frames_at(plan.alphas[est_idx]).cpu().numpy()
         t_render += time.perf_counter() - t0
         D2 = np.zeros((m_bounds, N - 1))
-        c = sc.sample_counts(torch.as_tensor(anchor_frames), int(config.n))
+        # fixed anchors share their noise draws, as the adaptive ones do (each bound a Binomial count;
+        # Bonferroni needs no independence between them)
+        c = sc.sample_counts(torch.as_tensor(anchor_frames), int(config.n), common_noise=True)
         k_est[:] = c[:, label].numpy()
         tick(m_bounds * config.n)
     prev = None
