@@ -394,3 +394,21 @@ def test_memory_ceiling_keeps_the_refined_grid_small_instead_of_failing(monkeypa
     # the frontier refinement bounds a few sub-segments at a time (no stored bounds): its points come on top
     splits = cert.bounds.get("frontier_splits", 0)
     assert cert.status != "error" and cert.num_partitions <= 11 + splits and plans[-1].num_partitions == cert.num_partitions
+
+
+def test_binning_is_redone_after_an_edit_in_place():
+    """The binned cloud is reused for the same, unchanged arrays (plan and axes of one frame), never
+    for arrays edited in place since: a render then equals one of a fresh copy of the cloud."""
+    rng = np.random.default_rng(7)
+    cam = CameraIntrinsics(64, 48, 60.0, 60.0, 31.5, 23.5, "cam")
+    cloud = cloud_from_rgbd(rng.uniform(0.8, 2.0, cam.shape), rng.random(cam.shape + (3,)).astype(np.float32), cam)
+    im = make_imaging("surfel", cam, (12, 16), background=0.25, border=0, render_factor=2)
+    assert im.decimate == 2
+    first = SurfelRenderer(cloud, im, "ry").render_batch([0.0, 0.01]).numpy()
+    np.testing.assert_array_equal(SurfelRenderer(cloud, im, "ry").render_batch([0.0, 0.01]).numpy(), first)
+    cloud.colors[[0, 100]] = cloud.colors[[100, 0]]          # same sums, other image
+    cloud.points[5, 2] += 0.5
+    again = SurfelRenderer(cloud, im, "ry").render_batch([0.0, 0.01]).numpy()
+    fresh = SurfelRenderer(Cloud(cloud.points.copy(), cloud.colors.copy()), im, "ry").render_batch([0.0, 0.01]).numpy()
+    np.testing.assert_array_equal(again, fresh)
+    assert not np.array_equal(again, first)

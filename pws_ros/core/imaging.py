@@ -53,6 +53,7 @@ with one set of constants and helpers, and must not drift apart.)
 from __future__ import annotations
 
 import math
+import zlib
 from dataclasses import dataclass, field, replace
 from typing import Any, Iterator
 
@@ -300,8 +301,11 @@ def bin_cloud(points: np.ndarray, colors: np.ndarray, imaging: Imaging) -> tuple
         return points, colors
     cam = imaging.camera
     # the plan and the renderer of every axis of a frame bin the same cloud: the latest result is kept
-    # (one entry; the same array objects, unchanged contents, the same camera)
-    key = (cam, s, points.shape, float(np.sum(points)), float(np.sum(colors, dtype=np.float64)))
+    # (one entry, for the same array objects with the same contents (CRC-32 of their bytes: an edit in
+    # place is a new cloud) and the same camera; the result is shared, never modified)
+    points, colors = np.ascontiguousarray(points), np.ascontiguousarray(colors)
+    key = (cam, s, points.shape, points.dtype.str, colors.dtype.str, zlib.crc32(memoryview(points).cast("B")),
+           zlib.crc32(memoryview(colors).cast("B")))
     for p_, c_, k_, out_ in _LAST_BINS:
         if p_ is points and c_ is colors and k_ == key:
             return out_
@@ -384,7 +388,7 @@ def covered_pairs(umin, umax, vmin, vmax, mask, samples: SamplePoints, eps: floa
     c1 = torch.ceil(umax + (eps - 0.5 + SAMPLE_JITTER)).clamp_(0, W).long().view(-1)
     r0 = torch.ceil(vmin - (eps + 0.5 + SAMPLE_JITTER)).clamp_(0, H).long().view(-1)
     r1 = torch.ceil(vmax + (eps - 0.5 + SAMPLE_JITTER)).clamp_(0, H).long().view(-1)
-    nc, nr = c1.sub_(c0), r1.sub_(r0)
+    nc, nr = c1.sub_(c0).clamp_(min=0), r1.sub_(r0).clamp_(min=0)   # (a NaN edge: no pixel, not an overflow)
     live = mask.reshape(-1) & (nc > 0) & (nr > 0)
     base = r0.mul_(W).add_(c0)
     lo_u, hi_u = (umin - eps).view(-1), (umax + eps).view(-1)
@@ -717,7 +721,7 @@ class _HullSweep:
             lo.scatter_reduce_(0, idx, vals, reduce="amin", include_self=True)
             hi.scatter_reduce_(0, idx, vals, reduce="amax", include_self=True)
         # every pixel has a value (the background where open, its sure surfel otherwise: kept, the channels together)
-        require(not bool(torch.isinf(lo[:, 0]).any()), "internal: a pixel without any value")
+        require(bool(torch.isfinite(lo[:, 0]).all()), "internal: a pixel without any value")
         im = r.imaging
         lo_o = _block_mean64(lo.view(B, H, W, 3).to(torch.float64), im) - VALUE_EPS
         hi_o = _block_mean64(hi.view(B, H, W, 3).to(torch.float64), im) + VALUE_EPS

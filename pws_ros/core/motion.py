@@ -173,7 +173,9 @@ def _project_torch(points, intr: CameraIntrinsics, axis: str, alpha):
             Xp, Yp, Zp = first.addcmul_(B, s), second.mul_(-1.0).addcmul_(B, c), Z
     shape = torch.broadcast_shapes(points.shape[:-1], torch.as_tensor(alpha).shape)
     Zp = Zp.expand(shape) if Zp.shape != shape else Zp
-    inv = torch.reciprocal(Zp)
+    # 1/Z' kept finite: a depth within 1e-300 of 0 then gives a point far off the image (as X'/Z' does),
+    # never 0 * inf = NaN
+    inv = torch.reciprocal(Zp).clamp_(-1e300, 1e300)
     u = torch.addcmul(torch.tensor(intr.cx + 0.5, dtype=inv.dtype, device=inv.device), Xp, inv, value=intr.fx)
     v = torch.addcmul(torch.tensor(intr.cy + 0.5, dtype=inv.dtype, device=inv.device), Yp, inv, value=intr.fy)
     return u, v, Zp
