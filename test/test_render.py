@@ -226,6 +226,16 @@ def test_projection_matches_matrix_convention(seed, axis):
     np.testing.assert_allclose(v, v_ref, rtol=1e-11, atol=1e-9)
     X, Y, Z = transform(pts, axis, a)
     np.testing.assert_allclose(np.stack([X, Y, Z], 1), Pp, atol=1e-12)
+    # the torch projection of the renderers (its own copy of the formulas) against the same reference,
+    # for one motion value and for a batch broadcast against the points
+    import torch
+
+    for alpha in (torch.tensor(a, dtype=torch.float64), torch.tensor([a, 0.0], dtype=torch.float64)[:, None]):
+        ut, vt, zt = (x.numpy() for x in project(torch.as_tensor(pts), CAM, axis, alpha, xp=torch))
+        assert ut.shape == vt.shape == zt.shape == tuple(alpha.shape[:-1]) + (len(pts),)
+        np.testing.assert_allclose(zt.reshape(-1, len(pts))[0], Pp[:, 2], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(ut.reshape(-1, len(pts))[0], u_ref, rtol=1e-11, atol=1e-9)
+        np.testing.assert_allclose(vt.reshape(-1, len(pts))[0], v_ref, rtol=1e-11, atol=1e-9)
 
 
 def test_motion_directions():

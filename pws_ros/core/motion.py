@@ -150,27 +150,19 @@ def _project_torch(points, intr: CameraIntrinsics, axis: str, alpha):
     import torch
 
     X, Y, Z = points[..., 0], points[..., 1], points[..., 2]
-    if axis in TRANSLATIONS:
+    if axis in TRANSLATIONS:   # the moved coordinate only; the others broadcast as they are
         k = TRANSLATIONS.index(axis)
         Xp, Yp, Zp = (X - alpha if k == 0 else X), (Y - alpha if k == 1 else Y), (Z - alpha if k == 2 else Z)
-    else:
+    else:                      # the rotations of transform(), each new coordinate in two passes
         c, s = torch.cos(alpha), torch.sin(alpha)
-        if axis == "rx":
-            A, B = Y, Z                      # Y' = c Y + s Z, Z' = -s Y + c Z
-        elif axis == "ry":
-            A, B = X, Z                      # X' = c X - s Z, Z' = s X + c Z
-        elif axis == "rz":
-            A, B = X, Y                      # X' = c X + s Y, Y' = -s X + c Y
+        if axis == "rx":   # Y' = c Y + s Z, Z' = -s Y + c Z
+            Xp, Yp, Zp = X, torch.mul(Y, c).addcmul_(Z, s), torch.mul(Y, s).neg_().addcmul_(Z, c)
+        elif axis == "ry":   # X' = c X - s Z, Z' = s X + c Z
+            Xp, Yp, Zp = torch.mul(X, c).addcmul_(Z, s, value=-1.0), Y, torch.mul(X, s).addcmul_(Z, c)
+        elif axis == "rz":   # X' = c X + s Y, Y' = -s X + c Y
+            Xp, Yp, Zp = torch.mul(X, c).addcmul_(Y, s), torch.mul(X, s).neg_().addcmul_(Y, c), Z
         else:
             raise PwsError(f"unknown motion axis {axis!r}")
-        first = torch.mul(A, c)
-        second = torch.mul(A, s)
-        if axis == "rx":
-            Xp, Yp, Zp = X, first.addcmul_(B, s), second.mul_(-1.0).addcmul_(B, c)
-        elif axis == "ry":
-            Xp, Yp, Zp = first.addcmul_(B, s, value=-1.0), Y, second.addcmul_(B, c)
-        else:
-            Xp, Yp, Zp = first.addcmul_(B, s), second.mul_(-1.0).addcmul_(B, c), Z
     shape = torch.broadcast_shapes(points.shape[:-1], torch.as_tensor(alpha).shape)
     Zp = Zp.expand(shape) if Zp.shape != shape else Zp
     # 1/Z' kept finite: a depth within 1e-300 of 0 then gives a point far off the image (as X'/Z' does),
