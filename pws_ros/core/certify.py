@@ -35,7 +35,7 @@ from .bounds import SegmentValues
 from .camera import CameraIntrinsics
 from .cloud import Cloud
 from .errors import require
-from .imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, hulls_within, segment_bounds, segment_hulls
+from .imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, hulls_within, segment_bounds
 from .model import LoadedModel
 from .coverage import COVERAGES, AdaptiveAnchorsRule, cohen_radii, coverage_rule, frontier_reach, packing_bound, segment_covers
 from .motion import UNITS, parse_axis
@@ -367,7 +367,9 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, rule: AdaptiveAnchor
     if plan_out is not None:
         plan_out.append(plan)
     t0 = time.perf_counter()
-    hulls = segment_hulls(renderer, plan.alphas, max_bytes=bounds_bytes(config))
+    # one sweep over the plan's range bounds its grid here and, below, the frontier's finer segments
+    bounds_of = hulls_within(renderer, float(plan.alphas[0]), float(plan.alphas[-1]), max_bytes=bounds_bytes(config))
+    hulls = bounds_of(plan.alphas)
     timings = dict(timings, bounds=timings.get("bounds", 0.0) + time.perf_counter() - t0)
     t1 = time.perf_counter()
     def row(jj: int, i0: int = 0, i1: int | None = None) -> np.ndarray:
@@ -393,8 +395,7 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, rule: AdaptiveAnchor
     if reach < plan.radius and R[0] > 0:
         # the covered run stops inside a grid segment: refine it with the radii now known (frontier_reach)
         t0 = time.perf_counter()
-        sub_hulls = hulls_within(renderer, float(plan.alphas[0]), float(plan.alphas[-1]))
-        reach, splits = frontier_reach(segment_covers(sub_hulls, frames[est_idx], R), plan.alphas, covered, centre)
+        reach, splits = frontier_reach(segment_covers(bounds_of, frames[est_idx], R), plan.alphas, covered, centre)
         timings = dict(timings, bounds=timings.get("bounds", 0.0) + time.perf_counter() - t0)
     t1 = time.perf_counter()
     steps = np.sqrt(np.sum((frames[1:].astype(np.float64) - frames[:-1]) ** 2, axis=(1, 2, 3)))

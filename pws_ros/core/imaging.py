@@ -571,19 +571,15 @@ def _as64(x) -> np.ndarray:
 def segment_hulls(renderer: SurfelRenderer, alphas, *, max_bytes: int = 1 << 30) -> HullValues:
     """The per-segment value intervals of the surfel model for the grid ``alphas`` (see module doc)."""
     alphas = np.asarray(alphas, dtype=np.float64)
-    S = len(alphas) - 1
-    require(S >= 1, "a plan needs at least two motion values")
-    h, w = renderer.imaging.out_shape
-    need = 2 * S * h * w * 3 * 4
-    require(need <= max_bytes, f"bounds of {S} segments at {w}x{h} need {need / 2**20:.0f} MiB, more than "
-                               f"{max_bytes / 2**20:.0f} MiB: use fewer partitions")
-    return hulls_within(renderer, float(alphas[0]), float(alphas[-1]))(alphas)
+    require(len(alphas) >= 2, "a plan needs at least two motion values")
+    return hulls_within(renderer, float(alphas[0]), float(alphas[-1]), max_bytes=max_bytes)(alphas)
 
 
-def hulls_within(renderer: SurfelRenderer, lo: float, hi: float):
+def hulls_within(renderer: SurfelRenderer, lo: float, hi: float, *, max_bytes: int = 1 << 30):
     """``hulls(g)``: the :class:`HullValues` of the segments of an increasing grid ``g`` inside ``[lo, hi]``,
     bounded in batches of segments by one sweep set up once over ``[lo, hi]``; for grids chosen one after
-    another (:func:`.coverage.frontier_reach`) as for one whole plan (:func:`segment_hulls`)."""
+    another (:func:`.coverage.frontier_reach`) as for one whole plan (:func:`segment_hulls`). A grid
+    whose bounds need more than ``max_bytes`` is refused."""
     sweep = _HullSweep(renderer, float(lo), float(hi))
     h, w = renderer.imaging.out_shape
 
@@ -591,6 +587,10 @@ def hulls_within(renderer: SurfelRenderer, lo: float, hi: float):
         g = np.asarray(g, dtype=np.float64)
         require(len(g) >= 2 and lo <= g[0] and g[-1] <= hi and bool(np.all(np.diff(g) > 0)),
                 f"grid {g!r} is not increasing inside [{lo!r}, {hi!r}]")
+        S = len(g) - 1
+        need = 2 * S * h * w * 3 * 4
+        require(need <= max_bytes, f"bounds of {S} segments at {w}x{h} need {need / 2**20:.0f} MiB, more than "
+                                   f"{max_bytes / 2**20:.0f} MiB: use fewer partitions")
         S = len(g) - 1
         l_ = np.empty((S, h, w, 3), np.float32)
         h_ = np.empty((S, h, w, 3), np.float32)
