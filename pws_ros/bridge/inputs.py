@@ -32,6 +32,11 @@ from .config import PwsConfig, depth_info_topic, resolve_path
 from .sync import StampMatcher
 
 
+def _sync_ns(config: PwsConfig) -> dict[str, int]:
+    """The stamp matcher's tolerances (ns) from the configuration (seconds)."""
+    return {"tolerance_ns": int(round(config.sync_tolerance_s * 1e9)), "max_skew_ns": int(round(config.sync_max_skew_s * 1e9))}
+
+
 @dataclass
 class RawFrame:
     """The messages of one input frame (converted later by :func:`convert`)."""
@@ -63,8 +68,7 @@ class InputAssembler:
         self.mode = config.input_mode
         self._lock = threading.Lock()
         streams = ("depth", "color") + (("info",) if config.camera_info_sync == "stamp" else ())
-        self.matcher = StampMatcher(streams, tolerance_ns=int(round(config.sync_tolerance_s * 1e9)), queue_size=config.sync_queue_size,
-                                    max_skew_ns=int(round(config.sync_max_skew_s * 1e9)))
+        self.matcher = StampMatcher(streams, queue_size=config.sync_queue_size, **_sync_ns(config))
         self.latest_info: Any = None
         self.latest_depth_info: Any = None
         self.fallback: CameraIntrinsics | None = None
@@ -87,8 +91,8 @@ class InputAssembler:
         """New parameters at run time (``ros2 param set``): the config and the matcher's tolerances."""
         with self._lock:
             self.config = config
-            self.matcher.tolerance_ns = int(round(config.sync_tolerance_s * 1e9))
-            self.matcher.max_skew_ns = int(round(config.sync_max_skew_s * 1e9))
+            for name, ns in _sync_ns(config).items():
+                setattr(self.matcher, name, ns)
 
     # -- helpers --
     def _accept_source(self, source: str) -> bool:
