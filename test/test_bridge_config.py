@@ -146,7 +146,9 @@ def test_resolve_path(tmp_path, monkeypatch):
 
 def test_spec_table_per_node():
     planner = {p.name for p in C.spec_table(["partition_planner"])}
-    assert "axes" in planner and "sigma" not in planner and "points_topic" not in planner
+    assert "axes" in planner and "batch_size" not in planner and "points_topic" not in planner
+    # the planner refines the grid for the certifier's adaptive anchors: it reads what their target depends on
+    assert {"coverage", "sigma", "n0", "n", "alpha", "num_anchors"} <= planner
     assert {p.name for p in C.spec_table(["pipeline"])} == {p.name for p in C.PARAMS if "pipeline" in p.nodes}
     assert all(f"radius.{a}" in planner for a in AXES)
 

@@ -146,16 +146,10 @@ def test_unexpected_exceptions_are_contained(model_path, small_camera, monkeypat
     assert logs and logs[-1][0] == "error"
 
 
-@pytest.mark.parametrize("imaging", ["surfel", "paper"])
-def test_four_process_path_gives_the_same_certificate(model_path, small_camera, imaging):
-    """plan bundle -> render -> frames/bounds as messages (CDR) -> assembler -> certify_assembled
-    equals the pipeline's in-memory certify() (pairwise coverage: the adaptive anchors of the surfel
-    pipeline refine the plan with the model, which the planner node does not have)."""
-    eng, _ = make_engine(model_path, axes=["tx", "tz"], **{"radius.tx": 0.05}, imaging=imaging, coverage="pairwise")
-    cloud = scene(small_camera)
-    S = 1_700_000_000_000_000_000
-    bundle = eng.plan_bundle(cloud, small_camera, S, "cam")
-    assert not bundle.errors and bundle.camera == small_camera and bundle.imaging.kind == imaging
+def four_process(eng: FrameCertifier, cloud: Cloud, camera: CameraIntrinsics, S: int):
+    """plan bundle -> render -> frames/bounds as messages (CDR) -> assembler -> certify_assembled."""
+    bundle = eng.plan_bundle(cloud, camera, S, "cam")
+    assert not bundle.errors and bundle.camera == camera
     wire = scheme.parse_plan_bundle_message(T.typestore.deserialize_cdr(
         T.typestore.serialize_cdr(scheme.plan_bundle_message(bundle, T), "std_msgs/msg/String"), "std_msgs/msg/String"))
     asm = PartitionAssembler()
@@ -170,12 +164,69 @@ def test_four_process_path_gives_the_same_certificate(model_path, small_camera, 
         b = scheme.parse_bounds_message(scheme.bounds_message(S, axis, rendered, T))
         asm.add_bounds(S, axis, b.count, b)
     (frame,) = asm.pop_ready()
-    four = eng.certify_assembled(frame)
+    return bundle, eng.certify_assembled(frame)
+
+
+@pytest.mark.parametrize("imaging", ["surfel", "paper"])
+def test_four_process_path_gives_the_same_certificate(model_path, small_camera, imaging):
+    """The four-process path equals the pipeline's in-memory certify() (pairwise coverage)."""
+    eng, _ = make_engine(model_path, axes=["tx", "tz"], **{"radius.tx": 0.05}, imaging=imaging, coverage="pairwise")
+    cloud = scene(small_camera)
+    S = 1_700_000_000_000_000_000
+    bundle, four = four_process(eng, cloud, small_camera, S)
+    assert bundle.imaging.kind == imaging
     one = eng.process(cloud, small_camera, S)
     assert four.frame_id == "cam" and [c.axis for c in four.certificates] == ["tx", "tz"]
     for a, b in zip(four.certificates, one.certificates):
         assert a.status == b.status and a.radius == b.radius and a.p_a_lower == b.p_a_lower
         assert a.num_partitions == b.num_partitions and a.bounds["max_pair_bound_sq"] == pytest.approx(b.bounds["max_pair_bound_sq"])
+
+
+def smooth_scene(intr: CameraIntrinsics) -> Cloud:
+    """The box and wall of :func:`scene` in smooth colours (no per-pixel noise: a short rendered path)."""
+    h, w = intr.height, intr.width
+    depth = np.full((h, w), 2.0)
+    depth[h // 4: 3 * h // 4, w // 4: 5 * w // 8] = 1.2
+    r, c = np.mgrid[0:h, 0:w]
+    rgb = np.stack([np.full((h, w), 230), 40 + 150 * c // w, 40 + 150 * r // h], axis=-1).astype(np.uint8)
+    return cloud_from_rgbd(depth, rgb, intr)
+
+
+def test_four_process_path_places_the_same_adaptive_anchors(model_path, small_camera):
+    """With the default coverage (surfel imaging, anchors) the planner refines the grid for the largest
+    target any selection can give and the certifier places the anchors from the received bounds: where the
+    selection is unanimous (the pipeline's target is that one) and the pipeline needed no frontier
+    refinement, both give the same grid, anchors, p_A bounds and radius."""
+    from pws_ros.core.certify import largest_target
+
+    eng, _ = make_engine(model_path, axes=["tz", "ry"], **{"radius.tz": 0.05, "radius.ry": 0.0125}, sigma=0.25)
+    cloud = smooth_scene(small_camera)
+    S = 1_700_000_000_000_000_001
+    bundle, four = four_process(eng, cloud, small_camera, S)
+    one = eng.process(cloud, small_camera, S)
+    for a, b in zip(four.certificates, one.certificates):
+        # preconditions of the equality (the scene and settings are chosen so that they hold)
+        assert b.bounds["target_radius"] == largest_target(eng.certify_config(a.axis, S)) and b.bounds["frontier_splits"] == 0
+        assert len(b.bounds["anchors"]) >= 3 and b.certified
+        assert bundle.plans[a.axis].details["refined_from"] < len(bundle.plans[a.axis].alphas)   # the planner refined
+        assert a.status == b.status and a.radius == b.radius and a.p_a_lower == b.p_a_lower, (a.axis, a.reason, b.reason)
+        assert a.bounds["anchors"] == b.bounds["anchors"] and a.num_partitions == b.num_partitions
+        assert a.classifier_calls == b.classifier_calls and a.coverage == "anchors" and a.imaging == "surfel"
+
+
+def test_four_process_path_without_frontier_refinement_reaches_a_grid_point(model_path, small_camera):
+    """Where the pipeline's covered run stops inside a segment it refines that segment (frontier); the
+    four-process certifier has no renderer, so its radius stops at a grid point of the same grid: never
+    more than the pipeline's, and still above 0 here."""
+    eng, _ = make_engine(model_path, axes=["tz"], **{"radius.tz": 0.2}, sigma=0.25)
+    cloud = smooth_scene(small_camera)
+    S = 1_700_000_000_000_000_002
+    bundle, four = four_process(eng, cloud, small_camera, S)
+    (a,), (b,) = four.certificates, eng.process(cloud, small_camera, S).certificates
+    assert b.bounds["frontier_splits"] > 0 and not b.certified   # the case this test is about
+    assert a.status == "not_certified" and a.bounds["frontier_splits"] == 0
+    assert 0 < a.radius <= b.radius and a.p_a_lower == b.p_a_lower
+    assert min(abs(bundle.plans["tz"].alphas - a.radius)) == 0 or min(abs(bundle.plans["tz"].alphas + a.radius)) == 0
 
 
 def test_incomplete_set_is_an_error_in_certify_assembled(model_path, small_camera):

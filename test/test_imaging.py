@@ -194,14 +194,17 @@ def test_bounds_are_tight_where_nothing_changes():
         assert np.all(hulls.lo[i] >= ends_lo - 1e-5) and np.all(hulls.hi[i] <= ends_hi + 1e-5)
 
 
-def test_segment_values_conversion_is_as_sound_as_the_hull():
-    rng = np.random.default_rng(4)
-    cloud = random_cloud(rng, True)
+def hulls_and_frames(seed: int, axis: str, radius: float, step: float):
+    """A random cloud's imaging, grid, production bounds and frames (for the sparse-form tests)."""
+    cloud = random_cloud(np.random.default_rng(seed), True)
     im = make_imaging("surfel", CAM, (3, 4), background=0.5, border=0)
-    r = SurfelRenderer(cloud, im, "ry")
-    alphas = make_grid(0.02, 0.01)
-    hulls = segment_hulls(r, alphas)
-    frames = r.render_batch(alphas).numpy()
+    r = SurfelRenderer(cloud, im, axis)
+    alphas = make_grid(radius, step)
+    return cloud, im, alphas, segment_hulls(r, alphas), r.render_batch(alphas).numpy()
+
+
+def test_segment_values_conversion_is_as_sound_as_the_hull():
+    cloud, im, alphas, hulls, frames = hulls_and_frames(4, "ry", 0.02, 0.01)
     values = hulls.to_segment_values(frames)
     # the sparse form drops only the float margins of constant pixels: equal up to them ...
     np.testing.assert_allclose(values.pair_bound_sq(frames), hulls.pair_bound_sq(frames), rtol=1e-4)
@@ -213,6 +216,67 @@ def test_segment_values_conversion_is_as_sound_as_the_hull():
             f = reference_frame(cloud.points, cloud.colors, im, "ry", a)
             assert ((f - frames[i]) ** 2).sum() + ((f - frames[i + 1]) ** 2).sum() <= values.pair_bound_sq(frames)[i]
             assert ((f - y) ** 2).sum() <= values.anchor_dist_sq(frames, y)[i]
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 4), st.integers(1, 4), st.integers(1, 4), st.integers(0, 40))
+def test_boxes_from_segment_values_equal_a_brute_force(seed, S, h, w, E):
+    """HullValues.from_segment_values (the four-process certifier's bounds): per segment, pixel and
+    channel the least and greatest of the end frames' values and the extra values received (in any
+    order, repeated pairs included), loops only; a pixel is constant iff it has no extra value and both
+    end frames agree on every channel."""
+    from pws_ros.core.bounds import SegmentValues
+    from pws_ros.core.imaging import HullValues
+
+    rng = np.random.default_rng(seed)
+    levels = np.array([0.0, 0.25, 0.5, 1.0], np.float32)   # few levels: equal values and ties are common
+    frames = levels[rng.integers(0, 4, (S + 1, h, w, 3))]
+    for s in range(S):   # unchanged pixels
+        keep = rng.random((h, w)) < 0.4
+        frames[s + 1][keep] = frames[s][keep]
+    seg, pix = rng.integers(0, S, E), rng.integers(0, h * w, E)
+    val = np.where(rng.random((E, 3)) < 0.5, levels[rng.integers(0, 4, (E, 3))], rng.random((E, 3))).astype(np.float32)
+    got = HullValues.from_segment_values(SegmentValues(np.linspace(-1, 1, S + 1), seg, pix, val, (h, w)), frames)
+    for s in range(S):
+        for p in range(h * w):
+            r, c = divmod(p, w)
+            extras = [val[e] for e in range(E) if seg[e] == s and pix[e] == p]
+            for ch in range(3):
+                vs = [float(frames[s, r, c, ch]), float(frames[s + 1, r, c, ch])] + [float(v[ch]) for v in extras]
+                assert got.lo[s, r, c, ch] == min(vs) and got.hi[s, r, c, ch] == max(vs)
+            assert bool(got.constant[s, r, c]) == (not extras and all(frames[s, r, c] == frames[s + 1, r, c]))
+    # the box contains every value, so its distance bound is at least the value set's (loops)
+    y = rng.random((h, w, 3)).astype(np.float32)
+    d = got.dist_sq(y)
+    for s in range(S):
+        ref = 0.0
+        for p in range(h * w):
+            r, c = divmod(p, w)
+            cand = [frames[s, r, c], frames[s + 1, r, c]] + [val[e] for e in range(E) if seg[e] == s and pix[e] == p]
+            ref += max(sum((float(v[ch]) - float(y[r, c, ch])) ** 2 for ch in range(3)) for v in cand)
+        assert d[s] >= ref
+
+
+def test_boxes_from_segment_values_bound_the_rendered_frames():
+    """The round trip hulls -> sparse values -> boxes (what the four-process certifier rebuilds) stays
+    above every brute-force frame of each segment, and equals the original boxes where a pixel changes."""
+    from pws_ros.core.imaging import HullValues
+
+    cloud, im, alphas, hulls, frames = hulls_and_frames(5, "tz", 0.05, 0.02)
+    back = HullValues.from_segment_values(hulls.to_segment_values(frames), frames)
+    changing = ~hulls.constant
+    assert changing.any()
+    np.testing.assert_array_equal(back.lo[changing], hulls.lo[changing])
+    np.testing.assert_array_equal(back.hi[changing], hulls.hi[changing])
+    np.testing.assert_array_equal(back.constant, hulls.constant)
+    y = frames[3]
+    for i in range(len(alphas) - 1):
+        for a in np.linspace(alphas[i], alphas[i + 1], 9):
+            # the frame as delivered: the block mean (exact in float64 for these values) rounded to float32
+            f = reference_frame(cloud.points, cloud.colors, im, "tz", a).astype(np.float32).astype(np.float64)
+            assert ((f - y) ** 2).sum() <= back.dist_sq(y)[i]
+    with pytest.raises(PwsError, match="do not fit"):
+        HullValues.from_segment_values(hulls.to_segment_values(frames), frames[:-1])
 
 
 def test_imaging_errors_and_crop():

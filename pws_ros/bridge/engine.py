@@ -249,9 +249,18 @@ class FrameCertifier:
                         delta=c.delta if c.delta > 0 else None, max_partitions=c.max_partitions,
                         min_partitions=c.min_partitions)
 
+    def anchor_grid(self, cloud: Cloud, imaging: Any, plan: Any, stamp_ns: int = 0) -> Any:
+        """The plan the four-process projector renders: with surfel imaging and ``coverage: anchors``
+        refined for the certifier's adaptive anchors (:func:`~pws_ros.core.certify.anchor_grid`, at the
+        axis' own ``alpha``), else ``plan``."""
+        from ..core.certify import anchor_grid
+
+        return anchor_grid(cloud, imaging, plan, self.certify_config(plan.axis, stamp_ns))
+
     def plan_bundle(self, cloud: Cloud, intr: CameraIntrinsics, stamp_ns: int, frame_id: str = "",
                     dense_cloud: Cloud | None = None) -> PlanBundle:
-        """Every axis' plan for one frame (errors per axis are recorded, not raised)."""
+        """Every axis' plan for one frame (errors per axis are recorded, not raised); the grids are those
+        the projector renders (:meth:`anchor_grid`)."""
         try:
             imaging = self.imaging_for(intr, cloud)
         except PwsError as exc:
@@ -271,7 +280,7 @@ class FrameCertifier:
             return bundle
         for a in bundle.axes:
             try:
-                bundle.plans[a] = self.plan_axis(src, imaging, a)
+                bundle.plans[a] = self.anchor_grid(src, imaging, self.plan_axis(src, imaging, a), stamp_ns)
             except PwsError as exc:
                 bundle.errors[a] = str(exc)
             except Exception as exc:

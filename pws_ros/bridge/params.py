@@ -28,6 +28,7 @@ NODES = ("cloud_listener", "partition_planner", "projector", "certifier", "pipel
 _ALL = NODES
 _PLAN = ("partition_planner", "projector", "certifier", "pipeline")
 _CERT = ("certifier", "pipeline")
+_ANCHOR = ("partition_planner", "certifier", "pipeline")   # also the planner: it refines the grid for the anchors
 _IN = ("cloud_listener", "pipeline")
 
 
@@ -94,9 +95,10 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("step_px", float(DEFAULT_STEP_PX), "surfel imaging: the plan's step moves no point more than this many rendered "
               "pixels (finer = tighter bounds, more frames)", range=(1e-3, 100.0), nodes=_PLAN, unit="px"),
     ParamSpec("coverage", "anchors", "coverage rule: anchors (p_A at a few anchor frames only; with surfel imaging they are "
-              "placed from the distance bounds, at most num_anchors), pairwise (p_A at every partition, per segment), paper "
+              "placed from the distance bounds, at most num_anchors, on a grid refined for them: by the planner node in the four-process "
+              "mode), pairwise (p_A at every partition, per segment), paper "
               "(max M < min R); ignored by cms",
-              choices=COVERAGES, nodes=_CERT),
+              choices=COVERAGES, nodes=_ANCHOR),
     ParamSpec("delta", 0.0, "PwS-OF delta-convexity constant in pixels; 0 = the core's default", range=(0.0, 100.0), nodes=_PLAN, unit="px"),
     ParamSpec("max_partitions", DEFAULT_FRAME_BUDGET, "most partitions (frames) per axis: a plan needing more is made coarser (fewer frames, "
               "looser bounds, maybe a smaller certified radius), never refused", range=(3, 1_000_000), nodes=_PLAN),
@@ -116,16 +118,16 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("classes_path", "", "class-names file (one per line); empty = beside the model or in its metadata", read_only=True, nodes=_CERT),
     ParamSpec("denoiser_path", "", "optional TorchScript denoiser applied to noisy images before the classifier", read_only=True, nodes=_CERT),
     ParamSpec("device", "cpu", "torch device: cpu or cuda:N (falls back to cpu with a WARN when CUDA is missing)", read_only=True, nodes=_PLAN),
-    ParamSpec("sigma", 0.5, "pixel noise standard deviation of the smoothed classifier (images in [0, 1])", range=(1e-6, 10.0), nodes=_CERT),
-    ParamSpec("n0", 64, "noise samples to select the top class (at the original pose)", range=(1, 10_000_000), nodes=_CERT),
-    ParamSpec("n", 256, "noise samples per bound to estimate p_A", range=(1, 100_000_000), nodes=_CERT),
+    ParamSpec("sigma", 0.5, "pixel noise standard deviation of the smoothed classifier (images in [0, 1])", range=(1e-6, 10.0), nodes=_ANCHOR),
+    ParamSpec("n0", 64, "noise samples to select the top class (at the original pose)", range=(1, 10_000_000), nodes=_ANCHOR),
+    ParamSpec("n", 256, "noise samples per bound to estimate p_A", range=(1, 100_000_000), nodes=_ANCHOR),
     ParamSpec("alpha", 0.01, "risk of a frame's certificate: the probability that any statement about the frame (all its axes "
-              "together) is wrong; split evenly over the axes, then over every bound each uses (Bonferroni)", range=(1e-12, 0.5), nodes=_CERT),
+              "together) is wrong; split evenly over the axes, then over every bound each uses (Bonferroni)", range=(1e-12, 0.5), nodes=_ANCHOR),
     ParamSpec("seed", 0, "random seed; each frame and axis draws from its own stream derived from (seed, stamp, axis): "
               "deterministic for equal inputs, independent across frames and axes", range=(0, 2**31 - 1), nodes=_CERT),
     ParamSpec("batch_size", 256, "images per classifier call", range=(1, 1_000_000), nodes=_CERT),
     ParamSpec("num_anchors", 24, "anchor frames for coverage=anchors (surfel imaging: the most anchors, i.e. a budget of "
-              "n0 + num_anchors * n classifier calls per axis; a frame needing more gets a smaller radius)", range=(1, 100_000), nodes=_CERT),
+              "n0 + num_anchors * n classifier calls per axis; a frame needing more gets a smaller radius)", range=(1, 100_000), nodes=_ANCHOR),
     ParamSpec("audit_every", 0, "self-audit every k-th frame: re-render poses inside every segment of each certified axis "
               "(audit_poses per segment) and check every bound the certificate used; a violation turns that axis to "
               "ERROR; 0 = off", range=(0, 1_000_000), nodes=_CERT),

@@ -35,7 +35,7 @@ from .bounds import SegmentValues
 from .camera import CameraIntrinsics
 from .cloud import Cloud
 from .errors import require
-from .imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, hulls_within, segment_bounds
+from .imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, HullValues, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, hulls_within, segment_bounds
 from .model import LoadedModel
 from .coverage import COVERAGES, AdaptiveAnchorsRule, cohen_radii, coverage_rule, frontier_reach, packing_bound, segment_covers
 from .motion import UNITS, parse_axis
@@ -163,7 +163,8 @@ def certify(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, axis: str,
                              alpha_range=(float(plan.alphas[0]), float(plan.alphas[-1])))
     rule = coverage_rule(config.coverage, config.num_anchors, imaging.kind)
     if rule.adaptive:
-        cert = _certify_anchored(renderer, plan, rule, model, config, denoiser, progress, method, timings, t_start, plan_out)
+        cert = _certify_anchored(_RendererGeometry(renderer, config), plan, rule, model, config, denoiser, progress,
+                                 method, timings, t_start, plan_out)
     else:
         values = segment_bounds(renderer, cloud, imaging, plan.alphas, max_bytes=bounds_bytes(config))
         timings["bounds"] = time.perf_counter() - t0
@@ -179,13 +180,26 @@ def certify(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, axis: str,
 def certify_rendered(rendered, model: LoadedModel, config: CertifyConfig | None = None, denoiser=None,
                      progress: Callable[[int, int], None] | None = None) -> Certificate:
     """Certify from an already rendered plan (:class:`.bounds.RenderedPlan`), e.g. frames that crossed
-    topics between the projector and certifier nodes."""
+    topics between the projector and certifier nodes. A surfel plan with ``coverage: anchors`` gets the
+    adaptive anchors as in :func:`certify`, on the grid as received (the planner node refined it,
+    :func:`anchor_grid`; no refinement and no frontier here: the certifier has no renderer)."""
     config = (config or CertifyConfig()).validate()
     t_start = time.perf_counter()
     frames = rendered.frames
     require(frames.shape[0] == rendered.plan.num_partitions,
             f"{frames.shape[0]} frames for a plan of {rendered.plan.num_partitions} partitions: refusing to certify an incomplete partition set")
     model.check_input_size(int(frames.shape[1]), int(frames.shape[2]), what="frame")
+    imaging = str(rendered.plan.details.get("imaging", "paper"))
+    rule = coverage_rule(config.coverage, config.num_anchors, imaging)
+    if rule.adaptive:
+        f = frames.detach().cpu().numpy() if isinstance(frames, torch.Tensor) else np.asarray(frames, np.float32)
+        t0 = time.perf_counter()
+        hulls = HullValues.from_segment_values(rendered.values, f)
+        timings = {"plan": 0.0, "render": 0.0, "bounds": time.perf_counter() - t0}
+        cert = _certify_anchored(_FixedGeometry(f, hulls), rendered.plan, rule, model, config, denoiser, progress,
+                                 rendered.plan.method, timings, t_start)
+        cert.imaging = imaging
+        return cert
 
     step = int(config.chunk or 128)
 
@@ -193,9 +207,9 @@ def certify_rendered(rendered, model: LoadedModel, config: CertifyConfig | None 
         return frames[torch.as_tensor(np.searchsorted(rendered.plan.alphas, np.asarray(alphas)))]
 
     chunks = ((s, frames[s : s + step]) for s in range(0, len(frames), step))
-    cert = _certify_stream(frames_at, chunks, rendered.plan, rendered.values, coverage_rule(config.coverage, config.num_anchors),
+    cert = _certify_stream(frames_at, chunks, rendered.plan, rendered.values, rule,
                            model, config, denoiser, progress, rendered.plan.method, {"plan": 0.0, "render": 0.0}, t_start)
-    cert.imaging = str(rendered.plan.details.get("imaging", "paper"))
+    cert.imaging = imaging
     return cert
 
 
@@ -315,7 +329,98 @@ def _conclude(plan: Plan, centre: int, reach: float, est_pos: dict[int, int], p_
                        reason=reason, seed=int(config.seed))
 
 
-def _certify_anchored(renderer: SurfelRenderer, plan: Plan, rule: AdaptiveAnchorsRule, model: LoadedModel,
+class _RendererGeometry:
+    """What the adaptive anchors need of the imaging model, from the renderer (pipeline, replay,
+    ``pws certify``): frames of the plan, the plan refined for the target, bounds of any grid inside
+    the plan's range, hence the frontier refinement."""
+
+    def __init__(self, renderer: SurfelRenderer, config: CertifyConfig):
+        self.renderer, self.config = renderer, config
+        self._bounds_of = None
+
+    def frames(self, plan: Plan) -> np.ndarray:
+        return self.renderer.render_batch(plan.alphas).cpu().numpy()
+
+    def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int) -> tuple[Plan, np.ndarray]:
+        return refine_for_target(self.renderer, plan, frames, target, max_anchors, self.config)
+
+    def bounds(self, plan: Plan):
+        # one sweep over the plan's range bounds its grid here and, later, the frontier's finer segments
+        self._bounds_of = hulls_within(self.renderer, float(plan.alphas[0]), float(plan.alphas[-1]),
+                                       max_bytes=bounds_bytes(self.config))
+        return self._bounds_of(plan.alphas)
+
+    def frontier(self, anchor_frames: np.ndarray, R: np.ndarray, alphas: np.ndarray, covered: np.ndarray,
+                 centre: int) -> tuple[float, list[float]]:
+        return frontier_reach(segment_covers(self._bounds_of, anchor_frames, R), alphas, covered, centre)
+
+
+class _FixedGeometry:
+    """The same from frames and bounds received for a fixed grid (the four-process certifier; the planner
+    refined the grid for the largest possible target, :func:`anchor_grid`): nothing is refined further,
+    and a covered run that stops inside a segment stops at its grid point (no frontier refinement)."""
+
+    def __init__(self, frames: np.ndarray, hulls):
+        self._frames, self._hulls = frames, hulls
+
+    def frames(self, plan: Plan) -> np.ndarray:
+        return self._frames
+
+    def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int) -> tuple[Plan, np.ndarray]:
+        return plan, frames
+
+    def bounds(self, plan: Plan):
+        return self._hulls
+
+    frontier = None
+
+
+def refine_for_target(renderer: SurfelRenderer, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
+                      config: CertifyConfig) -> tuple[Plan, np.ndarray]:
+    """The plan refined where consecutive frames differ by more than ``target / REFINE_FRACTION``
+    (:func:`.anchors.refine_plan`), and its frames (only the new poses rendered). Anchors cover about 2
+    target radii of rendered path each: no refinement farther than the budget reaches; the frames and
+    bounds of the refined grid stay within the memory ceiling."""
+    coarse = plan
+    fit = int(bounds_bytes(config) // max(1, segment_bytes(renderer.imaging)))
+    plan = refine_plan(plan, frames, target / REFINE_FRACTION, max(len(frames), min(int(config.max_partitions), fit)),
+                       reach=(max_anchors + 1) * target)
+    if len(plan.alphas) != len(frames):  # render only the new poses
+        old = np.searchsorted(plan.alphas, coarse.alphas)
+        new = np.setdiff1d(np.arange(len(plan.alphas)), old)
+        full = np.empty((len(plan.alphas),) + frames.shape[1:], dtype=frames.dtype)
+        full[old] = frames
+        full[new] = renderer.render_batch(plan.alphas[new]).cpu().numpy()
+        frames = full
+    return plan, frames
+
+
+def largest_target(config: CertifyConfig) -> float:
+    """The target radius of the adaptive anchors when every selection sample votes for one class: the
+    largest any selection can give (:func:`.anchors.target_radius`); it needs no classifier."""
+    return target_radius(int(config.n0), int(config.n0), int(config.n), config.sigma, config.alpha, int(config.num_anchors))
+
+
+def anchor_grid(cloud: Cloud, imaging: Imaging, plan: Plan, config: CertifyConfig) -> Plan:
+    """The grid the four-process mode renders for the certifier's adaptive anchors: ``plan`` refined
+    (:func:`refine_for_target`) for :func:`largest_target`. The planner node has no classifier, so it
+    cannot refine for the target the selection samples will give, as the pipeline does: with a smaller
+    target its segments are coarser than the pipeline's (looser bounds: a smaller radius, never a wrong
+    one). The grid is fixed before any noise is drawn. Other imaging or coverage: ``plan`` itself.
+    ``config``: the axis' (its per-axis ``alpha``, as the certifier will use)."""
+    config = config.validate()
+    if imaging.kind != "surfel" or config.coverage != "anchors":
+        return plan
+    target = largest_target(config)
+    if target <= 0:
+        return plan
+    renderer = make_renderer(cloud, imaging, plan.axis, device=config.device,
+                             alpha_range=(float(plan.alphas[0]), float(plan.alphas[-1])))
+    frames = renderer.render_batch(plan.alphas).cpu().numpy()
+    return refine_for_target(renderer, plan, frames, target, int(config.num_anchors), config)[0]
+
+
+def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: LoadedModel,
                       config: CertifyConfig, denoiser,
                       progress, method: str, timings: dict[str, float], t_start: float,
                       plan_out: list | None = None) -> Certificate:
@@ -323,14 +428,16 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, rule: AdaptiveAnchor
     radius; the grid is refined where consecutive frames differ by more than a fraction of it; anchors are
     placed so that every segment lies within the target of one (sound bounds of :func:`.imaging.segment_hulls`);
     then p_A is estimated at those anchors only (Bonferroni over them) and segment ``i`` is covered by any
-    anchor ``a`` with ``D_i(x_a) < R_a``."""
+    anchor ``a`` with ``D_i(x_a) < R_a``. ``geometry``: :class:`_RendererGeometry` (refines the grid and the
+    frontier) or :class:`_FixedGeometry` (frames and bounds received, nothing refined)."""
     sc = SmoothedClassifier(model, config.sigma, batch_size=config.batch_size, seed=config.seed, denoiser=denoiser)
     max_anchors = int(config.num_anchors)
     total_work = config.n0 + max_anchors * config.n
     t0 = time.perf_counter()
-    frames = renderer.render_batch(plan.alphas).cpu().numpy()
-    t_render = time.perf_counter() - t0
+    frames = geometry.frames(plan)
+    t_render = timings.get("render", 0.0) + time.perf_counter() - t0
     zero = int(np.searchsorted(plan.alphas, 0.0))  # the selection frame: alpha = 0 is on every grid
+    require(zero < len(plan.alphas) and plan.alphas[zero] == 0.0, "plan grid lacks alpha = 0")
     counts0 = sc.sample_counts(torch.as_tensor(frames[zero:zero + 1]), int(config.n0))
     label = int(torch.argmax(counts0[0]).item())
     if progress is not None:
@@ -347,29 +454,14 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, rule: AdaptiveAnchor
         target = target_radius(int(counts0[0, label]), int(config.n0), n_est, config.sigma, config.alpha, 1)
     t0 = time.perf_counter()
     if target > 0:
-        # anchors cover about 2 target radii of rendered path each: refine no farther than the budget reaches
-        coarse = plan
-        # ... and keep the frames and bounds of the refined grid within the memory ceiling
-        fit = int(bounds_bytes(config) // max(1, segment_bytes(renderer.imaging)))
-        plan = refine_plan(plan, frames, target / REFINE_FRACTION, max(len(frames), min(int(config.max_partitions), fit)),
-                           reach=(max_anchors + 1) * target)
-        if len(plan.alphas) != len(frames):  # render only the new poses
-            old = np.searchsorted(plan.alphas, coarse.alphas)
-            new = np.setdiff1d(np.arange(len(plan.alphas)), old)
-            full = np.empty((len(plan.alphas),) + frames.shape[1:], dtype=frames.dtype)
-            full[old] = frames
-            full[new] = renderer.render_batch(plan.alphas[new]).cpu().numpy()
-            frames = full
+        plan, frames = geometry.refine(plan, frames, target, max_anchors)
     t_render += time.perf_counter() - t0
     N = plan.num_partitions
     centre = int(np.searchsorted(plan.alphas, 0.0))
-    require(plan.alphas[centre] == 0.0, "plan grid lacks alpha = 0")
     if plan_out is not None:
         plan_out.append(plan)
     t0 = time.perf_counter()
-    # one sweep over the plan's range bounds its grid here and, below, the frontier's finer segments
-    bounds_of = hulls_within(renderer, float(plan.alphas[0]), float(plan.alphas[-1]), max_bytes=bounds_bytes(config))
-    hulls = bounds_of(plan.alphas)
+    hulls = geometry.bounds(plan)
     timings = dict(timings, bounds=timings.get("bounds", 0.0) + time.perf_counter() - t0)
     t1 = time.perf_counter()
     def row(jj: int, i0: int = 0, i1: int | None = None) -> np.ndarray:
@@ -392,10 +484,10 @@ def _certify_anchored(renderer: SurfelRenderer, plan: Plan, rule: AdaptiveAnchor
     reach, covered = rule.radius(R, D2, plan.alphas, centre)   # the placed anchors: a fixed set (module doc of .anchors)
     t_stats += time.perf_counter() - t1
     splits: list[float] = []
-    if reach < plan.radius and R[0] > 0:
+    if reach < plan.radius and R[0] > 0 and geometry.frontier is not None:
         # the covered run stops inside a grid segment: refine it with the radii now known (frontier_reach)
         t0 = time.perf_counter()
-        reach, splits = frontier_reach(segment_covers(bounds_of, frames[est_idx], R), plan.alphas, covered, centre)
+        reach, splits = geometry.frontier(frames[est_idx], R, plan.alphas, covered, centre)
         timings = dict(timings, bounds=timings.get("bounds", 0.0) + time.perf_counter() - t0)
     t1 = time.perf_counter()
     steps = np.sqrt(np.sum((frames[1:].astype(np.float64) - frames[:-1]) ** 2, axis=(1, 2, 3)))

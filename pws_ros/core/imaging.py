@@ -544,6 +544,37 @@ class HullValues:
         h, w = self.lo.shape[1:3]
         return SegmentValues(np.asarray(self.alphas), seg_e[order], pix_e[order], val_e[order].astype(np.float32), (h, w))
 
+    @classmethod
+    def from_segment_values(cls, values, frames) -> "HullValues":
+        """The boxes of sparse values received with their frames (the four-process certifier): per segment,
+        pixel and channel the least and greatest of the values :class:`.bounds.SegmentValues` allows there
+        (both end frames' values and the extra ones). Every value of the set lies in its box, so the box's
+        distance bounds are at least the set's; for the sparse form of :meth:`to_segment_values` they are
+        the original boxes where a pixel changes and the (bitwise equal) end values where it does not."""
+        f = _as32(frames)
+        S = len(f) - 1
+        require(S >= 1 and values.num_segments == S and tuple(values.shape) == tuple(f.shape[1:3]),
+                f"bounds of {values.num_segments} segments at {values.shape} do not fit {len(f)} frames of {f.shape[1:3]}")
+        lo = np.minimum(f[:-1], f[1:]).reshape(S, -1, 3)
+        hi = np.maximum(f[:-1], f[1:]).reshape(S, -1, 3)
+        constant = (f[:-1] == f[1:]).all(axis=3).reshape(S, -1)
+        seg, pix, val = np.asarray(values.seg, np.int64), np.asarray(values.pix, np.int64), np.asarray(values.val, np.float32)
+        if len(seg):
+            require(int(seg.min()) >= 0 and int(seg.max()) < S and int(pix.min()) >= 0 and int(pix.max()) < lo.shape[1],
+                    "bounds name a segment or pixel outside the plan")
+            key = seg * lo.shape[1] + pix
+            order = np.argsort(key, kind="stable")
+            key, val = key[order], val[order]
+            start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+            g = key[start]
+            gs, gp = g // lo.shape[1], g % lo.shape[1]
+            lo[gs, gp] = np.minimum(lo[gs, gp], np.minimum.reduceat(val, start, axis=0))
+            hi[gs, gp] = np.maximum(hi[gs, gp], np.maximum.reduceat(val, start, axis=0))
+            constant[gs, gp] = False
+        h, w = f.shape[1:3]
+        return cls(np.asarray(values.alphas, dtype=np.float64), lo.reshape(S, h, w, 3), hi.reshape(S, h, w, 3),
+                   constant.reshape(S, h, w), {"segments": S, "from": "segment values"})
+
 
 def render_plan_surfel(cloud: Cloud, imaging: Imaging, plan, device: str = "cpu"):
     """Frames and bounds of a plan with the surfel model as a :class:`.bounds.RenderedPlan` (what the
@@ -566,6 +597,12 @@ def _as64(x) -> np.ndarray:
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().numpy()
     return np.asarray(x, dtype=np.float64)
+
+
+def _as32(x) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x, dtype=np.float32)
 
 
 def segment_hulls(renderer: SurfelRenderer, alphas, *, max_bytes: int = 1 << 30) -> HullValues:
