@@ -196,7 +196,8 @@ def test_four_process_path_places_the_same_adaptive_anchors(model_path, small_ca
     """With the default coverage (surfel imaging, anchors) the planner refines the grid for the largest
     target any selection can give and the certifier places the anchors from the received bounds: where the
     selection is unanimous (the pipeline's target is that one) and the pipeline needed no frontier
-    refinement, both give the same grid, anchors, p_A bounds and radius."""
+    refinement, both give the same grid (but for the points near 0 the planner adds), anchors, p_A bounds
+    and radius."""
     from pws_ros.core.certify import largest_target
 
     eng, _ = make_engine(model_path, axes=["tz", "ry"], **{"radius.tz": 0.05, "radius.ry": 0.0125}, sigma=0.25)
@@ -210,14 +211,19 @@ def test_four_process_path_places_the_same_adaptive_anchors(model_path, small_ca
         assert len(b.bounds["anchors"]) >= 3 and b.certified
         assert bundle.plans[a.axis].details["refined_from"] < len(bundle.plans[a.axis].alphas)   # the planner refined
         assert a.status == b.status and a.radius == b.radius and a.p_a_lower == b.p_a_lower, (a.axis, a.reason, b.reason)
-        assert a.bounds["anchors"] == b.bounds["anchors"] and a.num_partitions == b.num_partitions
+        assert a.bounds["anchors"] == b.bounds["anchors"]
+        # the same grid, plus the points near 0 that stand in for the frontier refinement (4 a side)
+        four_grid, one_grid = bundle.plans[a.axis].alphas, one.plans[b.axis].alphas
+        assert set(one_grid) <= set(four_grid) and len(four_grid) == len(one_grid) + 8 == a.num_partitions
+        c = int(np.searchsorted(one_grid, 0.0))
+        assert set(four_grid) - set(one_grid) == {x / 4 ** k for x in (one_grid[c - 1], one_grid[c + 1]) for k in (1, 2, 3, 4)}
         assert a.classifier_calls == b.classifier_calls and a.coverage == "anchors" and a.imaging == "surfel"
 
 
 def test_four_process_path_without_frontier_refinement_reaches_a_grid_point(model_path, small_camera):
     """Where the pipeline's covered run stops inside a segment it refines that segment (frontier); the
-    four-process certifier has no renderer, so its radius stops at a grid point of the same grid: never
-    more than the pipeline's, and still above 0 here."""
+    four-process certifier has no renderer, so its radius stops at a grid point of its grid (the points
+    near 0 the planner adds included): never more than the pipeline's, and still above 0 here."""
     eng, _ = make_engine(model_path, axes=["tz"], **{"radius.tz": 0.2}, sigma=0.25)
     cloud = smooth_scene(small_camera)
     S = 1_700_000_000_000_000_002
@@ -227,6 +233,45 @@ def test_four_process_path_without_frontier_refinement_reaches_a_grid_point(mode
     assert a.status == "not_certified" and a.bounds["frontier_splits"] == 0
     assert 0 < a.radius <= b.radius and a.p_a_lower == b.p_a_lower
     assert min(abs(bundle.plans["tz"].alphas - a.radius)) == 0 or min(abs(bundle.plans["tz"].alphas + a.radius)) == 0
+
+
+def test_four_process_points_near_zero_give_a_weak_frame_a_radius(model_path, small_camera):
+    """A weak frame (p_A near 1/2: a small Cohen radius, far below the largest target the planner refined
+    for) is covered only inside the first segment on one side; the pipeline's frontier refinement finds
+    a radius there, and the four-process certifier, which cannot refine, still reaches one of the points
+    near 0 the planner added (without them its radius would be 0)."""
+    eng, _ = make_engine(model_path, axes=["ry"], **{"radius.ry": 0.0125}, sigma=0.25)
+    cloud = smooth_scene(small_camera)
+    red = np.full((len(cloud.colors), 1), 146 / 255, np.float32)   # just above MeanThresholdNet's threshold
+    cloud = Cloud(cloud.points, np.concatenate([red, cloud.colors[:, 1:]], axis=1))
+    S = 10
+    bundle, four = four_process(eng, cloud, small_camera, S)
+    (a,), (b,) = four.certificates, eng.process(cloud, small_camera, S).certificates
+    grid = bundle.plans["ry"].alphas
+    c = int(np.searchsorted(grid, 0.0))
+    first = min(grid[c + 5], -grid[c - 5])   # the first grid points beyond the 4 added a side
+    assert bundle.plans["ry"].details["near_centre_points"] == 8
+    assert b.bounds["frontier_splits"] > 0 and 0 < b.radius < first       # the case this test is about
+    assert 0 < a.radius < first and a.radius <= b.radius and a.p_a_lower == b.p_a_lower
+    assert a.radius in set(np.abs(grid))
+
+
+@pytest.mark.parametrize("params", [{"coverage": "pairwise"}, {"coverage": "paper"}, {"imaging": "paper"}])
+def test_the_planner_refines_only_for_the_adaptive_anchors(model_path, small_camera, params):
+    eng, _ = make_engine(model_path, axes=["tz"], **{"radius.tz": 0.05}, sigma=0.25, **params)
+    cloud = smooth_scene(small_camera)
+    bundle = eng.plan_bundle(cloud, small_camera, 3)
+    plan = eng.plan_axis(cloud, bundle.imaging, "tz")
+    np.testing.assert_array_equal(bundle.plans["tz"].alphas, plan.alphas)
+
+
+def test_the_planners_grid_stays_within_max_partitions(model_path, small_camera):
+    for cap in (9, 12, 257):
+        eng, _ = make_engine(model_path, axes=["tz"], **{"radius.tz": 0.05}, sigma=0.25, max_partitions=cap)
+        bundle = eng.plan_bundle(smooth_scene(small_camera), small_camera, 3)
+        plan = bundle.plans["tz"]
+        assert len(plan.alphas) <= cap and 0.0 in set(plan.alphas) and np.all(np.diff(plan.alphas) > 0)
+        assert ("near_centre_points" in plan.details) == (cap == 257)
 
 
 def test_incomplete_set_is_an_error_in_certify_assembled(model_path, small_camera):

@@ -37,7 +37,8 @@ from .cloud import Cloud
 from .errors import require
 from .imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, HullValues, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, hulls_within, segment_bounds
 from .model import LoadedModel
-from .coverage import COVERAGES, AdaptiveAnchorsRule, cohen_radii, coverage_rule, frontier_reach, packing_bound, segment_covers
+from .coverage import (COVERAGES, FRONTIER_PARTS, FRONTIER_ROUNDS, AdaptiveAnchorsRule, cohen_radii, coverage_rule, frontier_reach,
+                       packing_bound, segment_covers)
 from .motion import UNITS, parse_axis
 from .partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, Plan, check_radius, validate_grid
 from .result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_NOT_CERTIFIED, Certificate
@@ -406,8 +407,11 @@ def anchor_grid(cloud: Cloud, imaging: Imaging, plan: Plan, config: CertifyConfi
     (:func:`refine_for_target`) for :func:`largest_target`. The planner node has no classifier, so it
     cannot refine for the target the selection samples will give, as the pipeline does: with a smaller
     target its segments are coarser than the pipeline's (looser bounds: a smaller radius, never a wrong
-    one). The grid is fixed before any noise is drawn. Other imaging or coverage: ``plan`` itself.
-    ``config``: the axis' (its per-axis ``alpha``, as the certifier will use)."""
+    one). The certifier cannot refine the frontier either (no renderer), so the first segment on each side
+    of 0 gets the points the frontier refinement would reach there, at ``FRONTIER_PARTS^-k`` of its length
+    (``k = 1 .. FRONTIER_ROUNDS``): a weak frame's covered run, which stops near 0, then ends at one of them
+    instead of at 0. The grid is fixed before any noise is drawn. Other imaging or coverage: ``plan``
+    itself. ``config``: the axis' (its per-axis ``alpha``, as the certifier will use)."""
     config = config.validate()
     if imaging.kind != "surfel" or config.coverage != "anchors":
         return plan
@@ -417,7 +421,16 @@ def anchor_grid(cloud: Cloud, imaging: Imaging, plan: Plan, config: CertifyConfi
     renderer = make_renderer(cloud, imaging, plan.axis, device=config.device,
                              alpha_range=(float(plan.alphas[0]), float(plan.alphas[-1])))
     frames = renderer.render_batch(plan.alphas).cpu().numpy()
-    return refine_for_target(renderer, plan, frames, target, int(config.num_anchors), config)[0]
+    cap = min(int(config.max_partitions), int(bounds_bytes(config) // max(1, segment_bytes(imaging))))
+    plan = refine_for_target(renderer, plan, frames, target, int(config.num_anchors), config)[0]
+    a = plan.alphas
+    c = int(np.searchsorted(a, 0.0))
+    near = [float(a[j]) * FRONTIER_PARTS ** -k for j in (c - 1, c + 1) if 0 <= j < len(a) for k in range(1, FRONTIER_ROUNDS + 1)]
+    alphas = np.union1d(a, np.asarray(near, dtype=np.float64))
+    if len(alphas) == len(a) or len(alphas) > cap or not np.all(np.diff(alphas) > 0):
+        return plan
+    return Plan(plan.method, plan.axis, plan.radius, float(np.diff(alphas).max()), len(alphas), alphas, plan.unit,
+                dict(plan.details, near_centre_points=int(len(alphas) - len(a))))
 
 
 def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: LoadedModel,
