@@ -218,6 +218,7 @@ def test_four_process_path_places_the_same_adaptive_anchors(model_path, small_ca
         c = int(np.searchsorted(one_grid, 0.0))
         assert set(four_grid) - set(one_grid) == {x / 4 ** k for x in (one_grid[c - 1], one_grid[c + 1]) for k in (1, 2, 3, 4)}
         assert a.classifier_calls == b.classifier_calls and a.coverage == "anchors" and a.imaging == "surfel"
+        assert a.bounds["imaging"] == b.bounds["imaging"]
 
 
 def test_four_process_path_without_frontier_refinement_reaches_a_grid_point(model_path, small_camera):
@@ -266,12 +267,20 @@ def test_the_planner_refines_only_for_the_adaptive_anchors(model_path, small_cam
 
 
 def test_the_planners_grid_stays_within_max_partitions(model_path, small_camera):
-    for cap in (9, 12, 257):
+    """The refinement leaves room for the 8 points near 0; where the plan itself fills max_partitions, as
+    many as fit are added, the coarsest (1/4 of the first segment) first."""
+    for cap in (7, 9, 12, 257):
         eng, _ = make_engine(model_path, axes=["tz"], **{"radius.tz": 0.05}, sigma=0.25, max_partitions=cap)
         bundle = eng.plan_bundle(smooth_scene(small_camera), small_camera, 3)
         plan = bundle.plans["tz"]
-        assert len(plan.alphas) <= cap and 0.0 in set(plan.alphas) and np.all(np.diff(plan.alphas) > 0)
-        assert ("near_centre_points" in plan.details) == (cap == 257)
+        a = plan.alphas
+        assert len(a) <= cap and 0.0 in set(a) and np.all(np.diff(a) > 0)
+        near = plan.details.get("near_centre_points", 0)
+        assert near == 8 or len(a) == cap, (cap, near, len(a))
+        if near:   # the added points are the grid's nearest to 0; the farthest of them is 1/4 of a first grid point
+            inner = np.sort(np.abs(a[a != 0.0]))[:near]
+            assert inner[-1] * 4 in set(np.abs(a))
+    assert near == 8
 
 
 def test_incomplete_set_is_an_error_in_certify_assembled(model_path, small_camera):

@@ -279,6 +279,36 @@ def test_boxes_from_segment_values_bound_the_rendered_frames():
         HullValues.from_segment_values(hulls.to_segment_values(frames), frames[:-1])
 
 
+def test_boxes_from_segment_values_refuse_malformed_input():
+    from pws_ros.core.bounds import SegmentValues
+    from pws_ros.core.imaging import HullValues
+
+    frames = np.zeros((3, 2, 2, 3), np.float32)
+    a = np.array([-1.0, 0.0, 1.0])
+
+    def sv(seg, pix, val, shape=(2, 2)):
+        return SegmentValues(a, np.asarray(seg), np.asarray(pix), np.asarray(val), shape)
+
+    ok = sv([0, 1], [3, 0], np.full((2, 3), 0.5, np.float32))
+    assert HullValues.from_segment_values(ok, frames).hi.max() == 0.5
+    for bad, what in ((sv([0, 1], [3], np.zeros((2, 3))), "seg"), (sv([0], [3], np.zeros((1, 2))), "val"),
+                      (sv([[0]], [[3]], np.zeros((1, 3))), "seg"), (sv([0.5], [3], np.zeros((1, 3))), "integers"),
+                      (sv([2], [0], np.zeros((1, 3))), "outside"), (sv([0], [4], np.zeros((1, 3))), "outside"),
+                      (sv([0], [1], [[np.nan, 0, 0]]), "NaN"), (sv([0], [1], np.zeros((1, 3)), (2, 3)), "do not fit")):
+        with pytest.raises(PwsError, match=what):
+            HullValues.from_segment_values(bad, frames)
+    nan = frames.copy()
+    nan[1, 0, 0, 0] = np.inf
+    with pytest.raises(PwsError, match="NaN or inf"):
+        HullValues.from_segment_values(ok, nan)
+    with pytest.raises(PwsError, match=r"\(N, H, W, 3\)"):
+        HullValues.from_segment_values(ok, frames[..., :2])
+    # a value float32 cannot hold is rounded outwards: the box still contains it
+    v = 0.1 + 1e-12
+    box = HullValues.from_segment_values(sv([0], [0], [[v, -v, 0.0]]), frames)
+    assert float(box.hi[0, 0, 0, 0]) >= v and float(box.lo[0, 0, 0, 1]) <= -v
+
+
 def test_imaging_errors_and_crop():
     with pytest.raises(PwsError, match="smaller than the classifier's input 16x12"):
         make_imaging("surfel", CAM, (12, 16))

@@ -174,9 +174,9 @@ class FrameCertifier:
                           render_factor=c.render_factor)
         if im.kind == "surfel" and not self._imaging_described:
             self._imaging_described = True
-            from ..core.certify import bounds_bytes, segment_bytes
+            from ..core.certify import grid_cap, segment_bytes
 
-            fit = min(int(c.max_partitions), int(bounds_bytes(self.certify_config()) // segment_bytes(im)))
+            fit = grid_cap(im, self.certify_config())
             self.log("info", f"{im.describe()}; memory per axis: frames and bounds of at most {fit} segments x "
                              f"{segment_bytes(im) / 2**20:.2f} MiB = {fit * segment_bytes(im) / 2**20:.0f} MiB "
                              f"(max_memory_mb {c.max_memory_mb:g}), the renderer streams in chunks")
@@ -301,11 +301,14 @@ class FrameCertifier:
         return render_plan(self.source_cloud(cloud, dense_cloud), cam, plan, background=self.config.background, device=self.device)
 
     # ---- stage 3: certify ----
-    def certify_rendered(self, rendered: Any, stamp_ns: int = 0) -> Certificate:
+    def certify_rendered(self, rendered: Any, stamp_ns: int = 0, imaging: Any = None) -> Certificate:
+        """Certify received frames and bounds; ``imaging`` (the bundle's) is recorded as the pipeline does."""
         from ..core.certify import certify_rendered
 
         cert = certify_rendered(rendered, self.model, self.certify_config(rendered.plan.axis, stamp_ns), denoiser=self.denoiser)
         cert.imaging = str(rendered.plan.details.get("imaging", self.config.imaging))
+        if imaging is not None and hasattr(imaging, "to_dict"):
+            cert.bounds["imaging"] = imaging.to_dict()
         return self._stamp(cert)
 
     def certify_assembled(self, frame: AssembledFrame) -> FrameResult:
@@ -323,7 +326,7 @@ class FrameCertifier:
                 plan = bundle.plans[ax.axis]
                 plans[ax.axis] = plan
                 certs.append(self._guard(ax.axis, lambda: self.certify_rendered(rendered_plan_from_parts(plan, ax.frames, ax.bounds),
-                                                                                frame.stamp_ns)))
+                                                                                frame.stamp_ns, bundle.imaging)))
             timings[ax.axis] = time.perf_counter() - t1
         timings["total"] = time.perf_counter() - t0
         return FrameResult(frame.stamp_ns, bundle.frame_id if bundle else "", certs, plans, bundle.camera if bundle else None, timings)

@@ -16,9 +16,10 @@ The method on one screen (Theorems 1-3 of the paper with the per-segment bounds 
    * ``anchors``: some anchor ``a`` has ``D_i(x_a) < R_a`` (``p_A`` estimated at ``K`` anchors only; with
      surfel imaging the anchors are placed from the distance bounds, :class:`.coverage.AdaptiveAnchorsRule`).
 6. The certified radius is the largest ``r`` such that every segment inside ``[-r, r]`` is covered; the
-   certificate holds for ``[-b, b]`` iff it reaches ``b``. With the adaptive anchors, a covered run that
-   stops inside a grid segment is extended by refining that segment once the radii are known
-   (:func:`.coverage.frontier_reach`; coverage is a fact of the bounds on any grid).
+   certificate holds for ``[-b, b]`` iff it reaches ``b``. With the adaptive anchors and a renderer
+   (:func:`certify`), a covered run that stops inside a grid segment is extended by refining that segment
+   once the radii are known (:func:`.coverage.frontier_reach`; coverage is a fact of the bounds on any
+   grid); from received frames and bounds (:func:`certify_rendered`) it stops at the grid point.
 """
 from __future__ import annotations
 
@@ -376,15 +377,20 @@ class _FixedGeometry:
     frontier = None
 
 
+def grid_cap(imaging: Imaging, config: CertifyConfig) -> int:
+    """The most grid points a refined plan may have: ``max_partitions``, and as many frames and segment
+    bounds as the memory ceiling holds (:func:`bounds_bytes`)."""
+    return min(int(config.max_partitions), int(bounds_bytes(config) // max(1, segment_bytes(imaging))))
+
+
 def refine_for_target(renderer: SurfelRenderer, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
-                      config: CertifyConfig) -> tuple[Plan, np.ndarray]:
+                      config: CertifyConfig, reserve: int = 0) -> tuple[Plan, np.ndarray]:
     """The plan refined where consecutive frames differ by more than ``target / REFINE_FRACTION``
     (:func:`.anchors.refine_plan`), and its frames (only the new poses rendered). Anchors cover about 2
-    target radii of rendered path each: no refinement farther than the budget reaches; the frames and
-    bounds of the refined grid stay within the memory ceiling."""
+    target radii of rendered path each: no refinement farther than the budget reaches; the refined grid
+    stays within :func:`grid_cap` less ``reserve`` points (never below the plan's own size)."""
     coarse = plan
-    fit = int(bounds_bytes(config) // max(1, segment_bytes(renderer.imaging)))
-    plan = refine_plan(plan, frames, target / REFINE_FRACTION, max(len(frames), min(int(config.max_partitions), fit)),
+    plan = refine_plan(plan, frames, target / REFINE_FRACTION, max(len(frames), grid_cap(renderer.imaging, config) - int(reserve)),
                        reach=(max_anchors + 1) * target)
     if len(plan.alphas) != len(frames):  # render only the new poses
         old = np.searchsorted(plan.alphas, coarse.alphas)
@@ -409,9 +415,12 @@ def anchor_grid(cloud: Cloud, imaging: Imaging, plan: Plan, config: CertifyConfi
     target its segments are coarser than the pipeline's (looser bounds: a smaller radius, never a wrong
     one). The certifier cannot refine the frontier either (no renderer), so the first segment on each side
     of 0 gets the points the frontier refinement would reach there, at ``FRONTIER_PARTS^-k`` of its length
-    (``k = 1 .. FRONTIER_ROUNDS``): a weak frame's covered run, which stops near 0, then ends at one of them
-    instead of at 0. The grid is fixed before any noise is drawn. Other imaging or coverage: ``plan``
-    itself. ``config``: the axis' (its per-axis ``alpha``, as the certifier will use)."""
+    (``k = 1 .. FRONTIER_ROUNDS``; the refinement leaves room for them within :func:`grid_cap`, and where
+    the plan itself fills the cap as many as fit are added, the coarsest first): a weak frame's covered
+    run, which stops near 0, then ends at one of them instead of at 0. The grid is fixed before any noise
+    is drawn, from the cloud and the configuration only (a planner configured differently from the
+    certifier only changes how tight the bounds are). Other imaging or coverage: ``plan`` itself.
+    ``config``: the axis' (its per-axis ``alpha``, as the certifier will use)."""
     config = config.validate()
     if imaging.kind != "surfel" or config.coverage != "anchors":
         return plan
@@ -421,14 +430,17 @@ def anchor_grid(cloud: Cloud, imaging: Imaging, plan: Plan, config: CertifyConfi
     renderer = make_renderer(cloud, imaging, plan.axis, device=config.device,
                              alpha_range=(float(plan.alphas[0]), float(plan.alphas[-1])))
     frames = renderer.render_batch(plan.alphas).cpu().numpy()
-    cap = min(int(config.max_partitions), int(bounds_bytes(config) // max(1, segment_bytes(imaging))))
-    plan = refine_for_target(renderer, plan, frames, target, int(config.num_anchors), config)[0]
+    near_points = 2 * FRONTIER_ROUNDS
+    plan = refine_for_target(renderer, plan, frames, target, int(config.num_anchors), config, reserve=near_points)[0]
+    # the points near 0, coarsest first, as many as the cap leaves room for
     a = plan.alphas
     c = int(np.searchsorted(a, 0.0))
-    near = [float(a[j]) * FRONTIER_PARTS ** -k for j in (c - 1, c + 1) if 0 <= j < len(a) for k in range(1, FRONTIER_ROUNDS + 1)]
-    alphas = np.union1d(a, np.asarray(near, dtype=np.float64))
-    if len(alphas) == len(a) or len(alphas) > cap or not np.all(np.diff(alphas) > 0):
+    room = grid_cap(imaging, config) - len(a)
+    near = [float(a[j]) * FRONTIER_PARTS ** -k for k in range(1, FRONTIER_ROUNDS + 1) for j in (c - 1, c + 1) if 0 <= j < len(a)]
+    near = near[:max(0, room)]
+    if not near:
         return plan
+    alphas = np.union1d(a, np.asarray(near, dtype=np.float64))
     return Plan(plan.method, plan.axis, plan.radius, float(np.diff(alphas).max()), len(alphas), alphas, plan.unit,
                 dict(plan.details, near_centre_points=int(len(alphas) - len(a))))
 

@@ -552,24 +552,36 @@ class HullValues:
         distance bounds are at least the set's; for the sparse form of :meth:`to_segment_values` they are
         the original boxes where a pixel changes and the (bitwise equal) end values where it does not."""
         f = _as32(frames)
+        require(f.ndim == 4 and f.shape[3] == 3, f"frames must be (N, H, W, 3), got {f.shape}")
         S = len(f) - 1
         require(S >= 1 and values.num_segments == S and tuple(values.shape) == tuple(f.shape[1:3]),
                 f"bounds of {values.num_segments} segments at {values.shape} do not fit {len(f)} frames of {f.shape[1:3]}")
+        seg, pix, val = np.asarray(values.seg), np.asarray(values.pix), np.asarray(values.val)
+        require(seg.ndim == 1 and pix.shape == seg.shape and val.shape == seg.shape + (3,),
+                f"sparse bounds need seg (E,), pix (E,) and val (E, 3), got {seg.shape}, {pix.shape}, {val.shape}")
+        require(np.issubdtype(seg.dtype, np.integer) and np.issubdtype(pix.dtype, np.integer),
+                "sparse bounds name segments and pixels by integers")
+        require(bool(np.isfinite(f).all()) and bool(np.isfinite(val).all()), "frames or bounds contain NaN or inf")
+        seg, pix = seg.astype(np.int64), pix.astype(np.int64)
+        # values are float32 (the renderer's); any other float is rounded outwards, so the box still holds it
+        v64 = val.astype(np.float64)
+        v32 = v64.astype(np.float32)
+        v_lo = np.where(v32.astype(np.float64) > v64, np.nextafter(v32, np.float32(-np.inf)), v32)
+        v_hi = np.where(v32.astype(np.float64) < v64, np.nextafter(v32, np.float32(np.inf)), v32)
         lo = np.minimum(f[:-1], f[1:]).reshape(S, -1, 3)
         hi = np.maximum(f[:-1], f[1:]).reshape(S, -1, 3)
         constant = (f[:-1] == f[1:]).all(axis=3).reshape(S, -1)
-        seg, pix, val = np.asarray(values.seg, np.int64), np.asarray(values.pix, np.int64), np.asarray(values.val, np.float32)
         if len(seg):
             require(int(seg.min()) >= 0 and int(seg.max()) < S and int(pix.min()) >= 0 and int(pix.max()) < lo.shape[1],
                     "bounds name a segment or pixel outside the plan")
             key = seg * lo.shape[1] + pix
             order = np.argsort(key, kind="stable")
-            key, val = key[order], val[order]
+            key = key[order]
             start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
             g = key[start]
             gs, gp = g // lo.shape[1], g % lo.shape[1]
-            lo[gs, gp] = np.minimum(lo[gs, gp], np.minimum.reduceat(val, start, axis=0))
-            hi[gs, gp] = np.maximum(hi[gs, gp], np.maximum.reduceat(val, start, axis=0))
+            lo[gs, gp] = np.minimum(lo[gs, gp], np.minimum.reduceat(v_lo[order], start, axis=0))
+            hi[gs, gp] = np.maximum(hi[gs, gp], np.maximum.reduceat(v_hi[order], start, axis=0))
             constant[gs, gp] = False
         h, w = f.shape[1:3]
         return cls(np.asarray(values.alphas, dtype=np.float64), lo.reshape(S, h, w, 3), hi.reshape(S, h, w, 3),
