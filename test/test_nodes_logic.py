@@ -256,21 +256,23 @@ def four_nodes(bus, model_path, **extra):
     return ctxs, nodes
 
 
-def test_four_processes_match_the_pipeline(model_path):
-    """Same certificates from one process and from four (pairwise coverage: the pipeline's adaptive
-    anchors refine the plan with the model, which the planner node does not have)."""
+@pytest.mark.parametrize("coverage", ["pairwise", "anchors"])
+def test_four_processes_match_the_pipeline(model_path, coverage):
+    """Same certificates from one process and from four: pairwise coverage; and the default adaptive
+    anchors (the planner refines the grid for them, the certifier places them: the same anchors and p_A
+    bounds, and without the pipeline's frontier refinement a radius that stops at a grid point)."""
     from pws_ros.nodes.pipeline import PipelineNode
 
     stamps = [T0 + k * 100_000_000 for k in range(2)]
     bus1 = Bus()
-    pipe = PipelineNode(Context(bus1, "pipeline", **params(model_path, coverage="pairwise")))
+    pipe = PipelineNode(Context(bus1, "pipeline", **params(model_path, coverage=coverage)))
     try:
         play(bus1, stamps, lambda: bus1.published["/certification"])
     finally:
         pipe.close()
         bus1.close()
     bus2 = Bus()
-    ctxs, nodes = four_nodes(bus2, model_path, coverage="pairwise")
+    ctxs, nodes = four_nodes(bus2, model_path, coverage=coverage)
     try:
         play(bus2, stamps, lambda: bus2.published["/certification"], tick=[ctxs["certifier"]])
         assert not bus1.errors and not bus2.errors
@@ -280,8 +282,12 @@ def test_four_processes_match_the_pipeline(model_path):
             assert a.header.stamp == b.header.stamp and a.header.frame_id == b.header.frame_id
             pa, pb = msgbuild.parse_certification(a), msgbuild.parse_certification(b)
             for axis in ("tx", "tz"):
-                for key in ("label", "certified", "radius", "p_a_lower", "num_partitions", "classifier_calls", "level"):
+                for key in ("label", "certified", "p_a_lower", "classifier_calls", "level"):
                     assert pa[axis][key] == pb[axis][key], (axis, key)
+                if coverage == "pairwise":
+                    assert pa[axis]["radius"] == pb[axis]["radius"] and pa[axis]["num_partitions"] == pb[axis]["num_partitions"]
+                else:   # the same anchors; without the frontier refinement the radius stops at a grid point
+                    assert 0 < pb[axis]["radius"] <= pa[axis]["radius"], axis
         n = sum(int(msgbuild.parse_certification(b)[ax]["num_partitions"]) for b in four for ax in ("tx", "tz"))
         assert len(bus2.published["/rendered/frames"]) == n and len(bus2.published["/rendered/bounds"]) == 4
         assert len(bus2.published["/plan"]) == 2 and len(bus2.published["/plan/poses/tz"]) == 2
