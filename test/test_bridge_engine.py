@@ -23,14 +23,19 @@ T = msgbuild.rosbags_types()
 FAST = {"n0": 16, "n": 32, "batch_size": 64, "axes": ["tz", "ry"]}
 
 
-def scene(intr: CameraIntrinsics, seed: int = 0) -> Cloud:
-    """A reddish box in front of a wall, seen by ``intr``."""
+def box_depth(intr: CameraIntrinsics) -> np.ndarray:
+    """A box at 1.2 m in front of a wall at 2 m, seen by ``intr``."""
     h, w = intr.height, intr.width
     depth = np.full((h, w), 2.0)
     depth[h // 4: 3 * h // 4, w // 4: 5 * w // 8] = 1.2
-    rgb = np.random.default_rng(seed).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    return depth
+
+
+def scene(intr: CameraIntrinsics, seed: int = 0) -> Cloud:
+    """A reddish box in front of a wall, seen by ``intr``."""
+    rgb = np.random.default_rng(seed).integers(0, 256, (intr.height, intr.width, 3), dtype=np.uint8)
     rgb[..., 0] = 230  # red channel high: MeanThresholdNet says class 1
-    return cloud_from_rgbd(depth, rgb, intr)
+    return cloud_from_rgbd(box_depth(intr), rgb, intr)
 
 
 @pytest.fixture
@@ -185,11 +190,9 @@ def test_four_process_path_gives_the_same_certificate(model_path, small_camera, 
 def smooth_scene(intr: CameraIntrinsics) -> Cloud:
     """The box and wall of :func:`scene` in smooth colours (no per-pixel noise: a short rendered path)."""
     h, w = intr.height, intr.width
-    depth = np.full((h, w), 2.0)
-    depth[h // 4: 3 * h // 4, w // 4: 5 * w // 8] = 1.2
     r, c = np.mgrid[0:h, 0:w]
     rgb = np.stack([np.full((h, w), 230), 40 + 150 * c // w, 40 + 150 * r // h], axis=-1).astype(np.uint8)
-    return cloud_from_rgbd(depth, rgb, intr)
+    return cloud_from_rgbd(box_depth(intr), rgb, intr)
 
 
 def test_four_process_path_places_the_same_adaptive_anchors(model_path, small_camera):

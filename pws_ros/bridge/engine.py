@@ -307,7 +307,7 @@ class FrameCertifier:
 
         cert = certify_rendered(rendered, self.model, self.certify_config(rendered.plan.axis, stamp_ns), denoiser=self.denoiser)
         cert.imaging = str(rendered.plan.details.get("imaging", self.config.imaging))
-        if imaging is not None and hasattr(imaging, "to_dict"):
+        if imaging is not None:
             cert.bounds["imaging"] = imaging.to_dict()
         return self._stamp(cert)
 

@@ -497,7 +497,7 @@ class HullValues:
     def dist_sq(self, y: np.ndarray, segments: slice | np.ndarray | None = None) -> np.ndarray:
         """``D_i(y)^2 = sum max((lo - y)^2, (hi - y)^2)``: ``|x(alpha) - y|^2 <= D_i(y)^2`` on segment ``i``."""
         sel = slice(None) if segments is None else segments
-        y = _as64(y)
+        y = _as_numpy(y)
         # max((lo - y)^2, (hi - y)^2) = max(y - lo, hi - y)^2 (one of the two is the larger magnitude):
         # float64 throughout, two temporaries, the squares summed as a dot product
         m = np.subtract(y, self.lo[sel], dtype=np.float64)
@@ -508,7 +508,7 @@ class HullValues:
 
     def pair_bound_sq(self, frames, k0: int = 0) -> np.ndarray:
         """``|x(alpha) - x_i|^2 + |x(alpha) - x_{i+1}|^2`` bounds for segments ``k0 .. k0 + len(frames) - 2``."""
-        f = _as64(frames)
+        f = _as_numpy(frames)
         a, b = f[:-1], f[1:]
         sl = slice(k0, k0 + len(a))
         lo, hi = self.lo[sl].astype(np.float64), self.hi[sl].astype(np.float64)
@@ -551,7 +551,7 @@ class HullValues:
         (both end frames' values and the extra ones). Every value of the set lies in its box, so the box's
         distance bounds are at least the set's; for the sparse form of :meth:`to_segment_values` they are
         the original boxes where a pixel changes and the (bitwise equal) end values where it does not."""
-        f = _as32(frames)
+        f = _as_numpy(frames, np.float32)
         require(f.ndim == 4 and f.shape[3] == 3, f"frames must be (N, H, W, 3), got {f.shape}")
         S = len(f) - 1
         require(S >= 1 and values.num_segments == S and tuple(values.shape) == tuple(f.shape[1:3]),
@@ -605,16 +605,10 @@ def render_plan_surfel(cloud: Cloud, imaging: Imaging, plan, device: str = "cpu"
     return RenderedPlan(plan, frames, hulls.pair_bound_sq(f), hulls.to_segment_values(f), time.perf_counter() - t0)
 
 
-def _as64(x) -> np.ndarray:
+def _as_numpy(x, dtype=np.float64) -> np.ndarray:
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().numpy()
-    return np.asarray(x, dtype=np.float64)
-
-
-def _as32(x) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x, dtype=np.float32)
+    return np.asarray(x, dtype=dtype)
 
 
 def segment_hulls(renderer: SurfelRenderer, alphas, *, max_bytes: int = 1 << 30) -> HullValues:
@@ -640,7 +634,6 @@ def hulls_within(renderer: SurfelRenderer, lo: float, hi: float, *, max_bytes: i
         need = 2 * S * h * w * 3 * 4
         require(need <= max_bytes, f"bounds of {S} segments at {w}x{h} need {need / 2**20:.0f} MiB, more than "
                                    f"{max_bytes / 2**20:.0f} MiB: use fewer partitions")
-        S = len(g) - 1
         l_ = np.empty((S, h, w, 3), np.float32)
         h_ = np.empty((S, h, w, 3), np.float32)
         constant = np.empty((S, h, w), bool)
