@@ -130,7 +130,7 @@ def build_module(source: str, weights: str | None = None) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..core.export import IMAGENET_MEAN, IMAGENET_STD, export_model
+    from ..core.model import IMAGENET_MEAN, IMAGENET_STD, export_model
     from ..core.model import load_model
 
     require(not (args.imagenet and (args.mean or args.std)), "--imagenet and --mean/--std exclude each other")
