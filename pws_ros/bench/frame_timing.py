@@ -45,24 +45,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sync-tolerance", type=float, default=None, help="depth/colour stamp tolerance in seconds")
     p.add_argument("--json", action="store_true", help="print the measurements as JSON")
     args = p.parse_args(argv)
-    from ..commands.replay import register  # the replay command builds the configuration
     from ..core.errors import PwsError
     from ..replay import ReplayOptions, replay
+    from ..replay.options import load_replay_config, override_config
 
-    sub = argparse.ArgumentParser().add_subparsers()
-    register(sub)
-    rargs = ["replay", args.bag, "--no-output", "--quiet"]
-    if args.config:
-        rargs += ["--config", args.config]
-    if args.sync_tolerance is not None:
-        rargs += ["--sync-tolerance", str(args.sync_tolerance)]
-    parser = sub.choices["replay"]
-    ns = parser.parse_args(rargs[1:])
     try:
-        from ..commands.replay import options_from_args
-
-        opts: ReplayOptions = options_from_args(ns)
-        opts.max_frames = args.max_frames
+        cfg = load_replay_config(args.config)  # as pws replay reads it: --config, else config/pws.yaml
+        if args.sync_tolerance is not None:
+            cfg = override_config(cfg, {"sync_tolerance_s": args.sync_tolerance})
+        opts = ReplayOptions(bag=Path(args.bag), config=cfg, write_output=False, quiet=True, max_frames=args.max_frames)
         t0 = time.perf_counter()
         result = replay(opts)
         wall = time.perf_counter() - t0

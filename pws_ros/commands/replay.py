@@ -196,17 +196,10 @@ def register(subparsers) -> None:
 
 def build_config(args: argparse.Namespace):
     """The PwsConfig of the command line: --config (or config/pws.yaml) then the options."""
-    from ..bridge.config import PwsConfig, default_config_path, load_config
     from ..bridge.params import validate_param
+    from ..replay.options import load_replay_config, override_config
 
-    if args.config:
-        cfg = load_config(args.config, node_name="pipeline", check=False)
-    else:
-        try:
-            path = default_config_path()
-        except PwsError:
-            path = None
-        cfg = load_config(path, node_name="pipeline", check=False) if path is not None else PwsConfig()
+    cfg = load_replay_config(args.config)
     params: dict[str, Any] = {}
     if args.axes:
         params["axes"] = validate_param("axes", args.axes)
@@ -227,10 +220,7 @@ def build_config(args: argparse.Namespace):
             params[name] = str(Path(v).expanduser().resolve()) if attr in ("model", "classes", "denoiser", "dense_cloud") else v
     if params.get("method") == "pws" and getattr(args, "imaging", None) is None:
         params["imaging"] = "paper"  # the entire scene cloud has no depth pixels to make surfels of
-    try:
-        return cfg.with_params(params)
-    except PwsError as exc:
-        raise PwsError(str(exc).replace("parameter ", "option/parameter ")) from None
+    return override_config(cfg, params)
 
 
 def options_from_args(args: argparse.Namespace):

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ..bridge.config import PwsConfig
+from ..core.errors import PwsError
 from ..core.registration import Extrinsic
 from ..progress_log import DEFAULT_INTERVAL_S
 from ..report import FrameRecord, format_table
@@ -119,6 +120,32 @@ class ReplayResult:
 
     def table(self) -> str:
         return format_table(self.summary)
+
+
+# ---- configuration ------------------------------------------------------------------------
+
+def load_replay_config(path: str | Path | None = None) -> PwsConfig:
+    """The parameters of a replay before any command-line override: the ROS 2 parameter file ``path``
+    read as the ``pipeline`` node's, or ``config/pws.yaml`` when none is given and it is found, else the
+    built-in defaults (``pws replay`` and ``python -m pws_ros.bench.frame_timing``)."""
+    from ..bridge.config import default_config_path, load_config
+
+    if path:
+        return load_config(path, node_name="pipeline", check=False)
+    try:
+        found = default_config_path()
+    except PwsError:
+        found = None
+    return load_config(found, node_name="pipeline", check=False) if found is not None else PwsConfig()
+
+
+def override_config(cfg: PwsConfig, params: dict[str, Any]) -> PwsConfig:
+    """``cfg`` with command-line overrides (parameter name -> value), validated; an error names the
+    option/parameter."""
+    try:
+        return cfg.with_params(params)
+    except PwsError as exc:
+        raise PwsError(str(exc).replace("parameter ", "option/parameter ")) from None
 
 
 # ---- helpers ------------------------------------------------------------------------------
