@@ -1,4 +1,4 @@
-"""``pws_ros.metrics``: "certified at radius r" (closed interval for PwS, open for CMS), and the replay
+"""``pws_ros.core.metrics``: "certified at radius r" (closed interval for PwS, open for CMS), and the replay
 report and the bench report counting the same certificates alike (brute force written here)."""
 from __future__ import annotations
 
@@ -6,10 +6,10 @@ import random
 
 import pytest
 
-from pws_ros import metrics
+from pws_ros.core import metrics
 from pws_ros.bench import tables as bench_report
 from pws_ros.core.result import Certificate
-from pws_ros.report import FrameRecord, radius_grid, summarize
+from pws_ros.replay.report import FrameRecord, radius_grid, summarize
 
 
 def test_certified_at_closed_for_pws_open_for_cms():

@@ -1,4 +1,4 @@
-"""Progress (pws_ros.progress_log): a tqdm bar on a terminal, plain periodic lines elsewhere, nothing
+"""Progress (pws_ros.replay.progress_log): a tqdm bar on a terminal, plain periodic lines elsewhere, nothing
 with --quiet; and the lines a real `pws replay` writes when stderr is a pipe."""
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from pws_ros.progress_log import Progress
+from pws_ros.replay.progress_log import Progress
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "bags" / "demo"

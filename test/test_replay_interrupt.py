@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from pws_ros.interrupt import Interrupted, StopSignals
+from pws_ros.replay.interrupt import Interrupted, StopSignals
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "bags" / "demo"

@@ -1,4 +1,4 @@
-"""The replay summary / report (pws_ros.report) against brute force."""
+"""The replay summary / report (pws_ros.replay.report) against brute force."""
 from __future__ import annotations
 
 import csv
@@ -8,7 +8,7 @@ import random
 import pytest
 
 from pws_ros.core.result import Certificate
-from pws_ros.report import FrameRecord, format_table, radius_grid, summarize, write_report
+from pws_ros.replay.report import FrameRecord, format_table, radius_grid, summarize, write_report
 
 STATUSES = ("certified", "not_certified", "abstain", "error")
 

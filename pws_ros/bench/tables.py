@@ -1,7 +1,7 @@
 """The numbers of ``pws bench``: every table of the report computed from the measured records (the
 results dict, stored as ``bench.json``), and the extrapolated duration of a full run. No prose and no
 formatting here (:mod:`.verdicts` judges the paper's claims on these tables, :mod:`.render` writes them);
-"certified at radius r" is :mod:`pws_ros.metrics`'s definition.
+"certified at radius r" is :mod:`pws_ros.core.metrics`'s definition.
 """
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from .. import metrics
+from ..core import metrics
 from ..core.motion import PAPER_RADIUS
 from .settings import PAPER_CMS_SAMPLES, PRESETS
 from .shipped import summarize_shipped
@@ -21,13 +21,13 @@ CURVE_STEPS = 8  # radius curves at b * k / 8
 # statistics and accuracy of bench records
 # ------------------------------------------------------------------------------------------------
 def mean(xs) -> float:
-    """:func:`pws_ros.metrics.mean`, NaN where there is no finite value."""
+    """:func:`pws_ros.core.metrics.mean`, NaN where there is no finite value."""
     m = metrics.mean(xs)
     return float("nan") if m is None else m
 
 
 def median(xs) -> float:
-    """:func:`pws_ros.metrics.median`, NaN where there is no finite value."""
+    """:func:`pws_ros.core.metrics.median`, NaN where there is no finite value."""
     m = metrics.median(xs)
     return float("nan") if m is None else m
 
@@ -37,7 +37,7 @@ def _outcome(rec: dict) -> metrics.Outcome:
 
 
 def certified_at(rec: dict, r: float) -> bool:
-    """Correct and certified at radius ``r`` (:mod:`pws_ros.metrics`) for a bench record."""
+    """Correct and certified at radius ``r`` (:mod:`pws_ros.core.metrics`) for a bench record."""
     o = _outcome(rec)
     return o.correct and o.certified_at(r)
 

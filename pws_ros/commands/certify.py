@@ -6,7 +6,7 @@ import sys
 from ..core.certify import METHODS, certify
 from ..core.model import load_denoiser, load_model
 from ..core.render import resolve_device
-from ..progress_log import Progress
+from ..replay.progress_log import Progress
 from .common import add_plan_args, add_scene_args, add_smoothing_args, config_from_args, emit, load_scene
 
 

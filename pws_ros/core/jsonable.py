@@ -1,7 +1,7 @@
 """Plain JSON values from what the package produces (numpy scalars and arrays, tuples, paths, NaN/inf).
 
 One encoder for every JSON the package writes: certificates (:mod:`.result`), the replay summary
-(:mod:`pws_ros.report`), the plan bundles of the four-process scheme (:mod:`pws_ros.bridge.scheme`) and
+(:mod:`pws_ros.replay.report`), the plan bundles of the four-process scheme (:mod:`pws_ros.bridge.scheme`) and
 ``bench.json`` (:mod:`pws_ros.bench.report`). They differ only in how an infinity is written, which
 ``inf`` selects:
 

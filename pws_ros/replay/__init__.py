@@ -20,7 +20,7 @@ results as a bag (``pws replay``).
    optionally ``cloud`` + ``cloud/camera_info``, ``rendered/preview`` and the input topics themselves.
    A frame's messages are written together once it is done, and the bag is flushed after each
    frame (:meth:`~pws_ros.bagio.BagWriter.flush`). SIGINT and SIGTERM stop the run cleanly
-   (:mod:`pws_ros.interrupt`): the frame in flight is dropped whole, the bag is closed (complete and
+   (:mod:`.interrupt`): the frame in flight is dropped whole, the bag is closed (complete and
    readable up to the last finished frame), and the summary and report cover the frames done, with
    ``interrupted`` set and exit status 130 (SIGINT) or 143 (SIGTERM).
 
@@ -30,7 +30,10 @@ the ground truth's ``scene_seed`` / ``view_index``; otherwise the method is refu
 
 Modules: :mod:`.options` (what a run takes and returns), :mod:`.discovery` (which topics are the input),
 :mod:`.truth` (ground truth), :mod:`.schedule` (stamp order, the online policy), :mod:`.run` (the run),
-:mod:`.summary` (its summary and verdict).
+:mod:`.summary` (its summary and verdict), :mod:`.report` (the summary's numbers, table, CSV, JSON and
+plots), :mod:`.progress_log` (the progress bar or lines, also used by ``pws certify``), :mod:`.interrupt`
+(SIGINT/SIGTERM as a clean stop). "Certified at radius r" is :mod:`pws_ros.core.metrics` (shared with
+``pws bench``).
 """
 from __future__ import annotations
 

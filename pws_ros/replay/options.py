@@ -9,8 +9,8 @@ from typing import Any, Callable
 from ..bridge.config import PwsConfig
 from ..core.errors import PwsError
 from ..core.registration import Extrinsic
-from ..progress_log import DEFAULT_INTERVAL_S
-from ..report import FrameRecord, format_table
+from .progress_log import DEFAULT_INTERVAL_S
+from .report import FrameRecord, format_table
 
 NODE_NAME = "pws_replay"
 GROUND_TRUTH_TOPIC = "/pws/ground_truth"

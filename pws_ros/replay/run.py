@@ -15,9 +15,9 @@ from ..bridge.config import PwsConfig
 from ..bridge.inputs import InputAssembler, RawFrame, convert
 from ..core.errors import PwsError, require
 from ..core.result import STATUS_ERROR, Certificate
-from ..interrupt import Interrupted, StopSignals
-from ..progress_log import Progress
-from ..report import FrameRecord, write_report
+from .interrupt import Interrupted, StopSignals
+from .progress_log import Progress
+from .report import FrameRecord, write_report
 from .discovery import discover_inputs
 from .options import GROUND_TRUTH_TOPIC, NODE_NAME, SIM_DENSE_MARKER, GroundTruth, InputTopics, ReplayOptions, ReplayResult, \
     default_out, topic_name

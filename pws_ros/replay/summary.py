@@ -7,7 +7,7 @@ from typing import Any
 
 from ..core.motion import UNITS
 from ..core.result import STATUS_ERROR
-from ..report import summarize
+from .report import summarize
 from .options import InputTopics
 from .schedule import closest_gap_ms
 

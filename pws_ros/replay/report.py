@@ -12,7 +12,7 @@ Definitions (per axis, over the frames with ground truth; error frames count as 
 - clean accuracy: the smoothed classifier's top class at the recorded pose (the ``n0`` selection
   samples) is the true class;
 - certified accuracy at radius r: that class is right and the certificate is certified at r
-  (:mod:`pws_ros.metrics`: no abstention, no error, and its certified radius covers ``[-r, r]``); at
+  (:mod:`pws_ros.core.metrics`: no abstention, no error, and its certified radius covers ``[-r, r]``); at
   the requested radius this is "certified and correct";
 - fraction certified at radius r (without ground truth): the same over the frames that did not error,
   correctness aside.
@@ -26,9 +26,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
-from . import metrics
-from .core.jsonable import jsonable
-from .core.result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_ERROR, STATUS_NOT_CERTIFIED, Certificate
+from ..core import metrics
+from ..core.jsonable import jsonable
+from ..core.result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_ERROR, STATUS_NOT_CERTIFIED, Certificate
 
 CSV_COLUMNS = (
     "frame", "stamp_ns", "time_s", "frame_id", "source", "axis", "unit", "status", "certified", "label", "class_name",

@@ -1,5 +1,5 @@
 """What the reports count, defined once: "certified at radius r", certified accuracy, its curve
-against the radius, and the summary statistics (used by :mod:`pws_ros.report` for ``pws replay`` and
+against the radius, and the summary statistics (used by :mod:`pws_ros.replay.report` for ``pws replay`` and
 :mod:`pws_ros.bench.report` for ``pws bench``).
 
 **Certified at radius r** (a certificate, for every motion in ``[-r, r]``, ``r >= 0``): the
@@ -25,7 +25,7 @@ from typing import Any, Iterable, NamedTuple, Sequence
 
 import numpy as np
 
-from .core.result import STATUS_ABSTAIN, STATUS_ERROR
+from .result import STATUS_ABSTAIN, STATUS_ERROR
 
 RADIUS_RTOL = 1e-9
 
