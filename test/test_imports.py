@@ -30,11 +30,7 @@ ROS_PACKAGES = ("rclpy", "rosidl_runtime_py", "launch_ros", "builtin_interfaces"
 
 # Known circles that another change is removing; listed here only while they exist (the test fails
 # when a listed circle is gone, so the exception cannot outlive it: delete the entry then).
-KNOWN_CIRCLES: list[frozenset[str]] = [
-    # issue 25: nodes/_common.py imports _ros inside start(), _ros imports _common at its top; being
-    # removed together with the node changes of issue 26.
-    frozenset({"pws_ros.nodes._common", "pws_ros.nodes._ros"}),
-]
+KNOWN_CIRCLES: list[frozenset[str]] = []
 
 
 def module_name(path: Path) -> str:

@@ -1,21 +1,19 @@
 """Pieces shared by the node modules. No rclpy import at module level: rclpy enters only through
-:mod:`._ros`, imported inside :func:`start`, so every node module imports where ROS is absent."""
+:mod:`._ros`, imported inside :func:`start`, so every node module imports where ROS is absent.
+:mod:`._ros` itself imports only :mod:`._base` (no import circle)."""
 from __future__ import annotations
 
 import importlib.util
 import sys
-import threading
 import time
-import traceback
-import weakref
 from typing import Any, Callable
 
 from ..bridge import msgbuild, msgconv
 from ..bridge.config import depth_info_topic
 from ..bridge.inputs import InputAssembler, RawFrame
-from ..bridge.sync import LatestSlot, RateMeter
 from ..core.errors import PwsError
 from ..core.registration import Extrinsic, chain_transform
+from ._base import TF_MESSAGE_TYPE, ShutdownSafePublisher, Worker, still_running_workers  # noqa: F401 - re-exported
 
 ROS_MISSING = ("rclpy (ROS 2 Jazzy) is not importable: install ROS 2 Jazzy and `source /opt/ros/jazzy/setup.bash` "
                "(then build this package with colcon); without ROS use the `pws` command")
@@ -34,104 +32,6 @@ def start(node_name: str, logic_class: Callable[..., Any], args: list[str] | Non
     from . import _ros
 
     return _ros.run(node_name, lambda node: logic_class(_ros.NodeContext(node, node_name)), args)
-
-
-_WORKERS: "weakref.WeakSet[Worker]" = weakref.WeakSet()
-
-
-def still_running_workers() -> list[str]:
-    """The names of the :class:`Worker` threads still running after :meth:`Worker.close` was asked."""
-    return sorted(w.thread.name for w in list(_WORKERS) if w.stopping and w.thread.is_alive())
-
-
-class Worker:
-    """A daemon thread that processes the newest item of a :class:`LatestSlot` with ``fn``.
-
-    Exceptions never end the thread: PwsError is logged as a warning, anything else as an error
-    with its traceback; ``last_error`` holds the last item's error ("" after a success).
-    """
-
-    def __init__(self, name: str, fn: Callable[[Any], None], log: Callable[[str, str], None]):
-        self.slot: LatestSlot[Any] = LatestSlot()
-        self.fn = fn
-        self.log = log
-        self.last_error = ""
-        self.busy = False
-        self.processed = 0
-        self.rate = RateMeter()
-        self._stop = threading.Event()
-        self.thread = threading.Thread(target=self._loop, name=name, daemon=True)
-        self.thread.start()
-        _WORKERS.add(self)
-
-    def submit(self, item: Any) -> bool:
-        """Hand over the newest input; True if an older one was dropped."""
-        return self.slot.put(item)
-
-    @property
-    def stopping(self) -> bool:
-        return self._stop.is_set()
-
-    def _loop(self) -> None:
-        while not self._stop.is_set():
-            item = self.slot.take(timeout=0.2)
-            if item is None:
-                continue
-            self.busy = True
-            try:
-                self.fn(item)
-                self.last_error = ""
-                self.processed += 1
-                self.rate.tick()
-            except PwsError as exc:
-                self.last_error = str(exc)
-                self.log("warn", str(exc))
-            except Exception as exc:  # keep the node alive
-                self.last_error = f"{type(exc).__name__}: {exc}"
-                if self.stopping:  # the node is being torn down under this frame: not an error of the frame
-                    self.log("info", f"frame abandoned at shutdown ({type(exc).__name__}: {exc})")
-                else:
-                    self.log("error", f"worker failed: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
-            finally:
-                self.busy = False
-
-    def close(self, timeout: float = 2.0) -> None:
-        """Ask the thread to stop and wait up to ``timeout`` s. ``ros2 launch`` escalates to SIGTERM 5 s
-        after SIGINT, so this stays short: a computation that does not see ``stopping`` in time (a
-        plan on a huge cloud, an axis being certified) is abandoned: the node's process then ends
-        with ``os._exit`` (:func:`still_running_workers`, ``_ros.run``)."""
-        self._stop.set()
-        self.slot.close()
-        self.thread.join(timeout)
-
-
-class ShutdownSafePublisher:
-    """A publisher that does nothing once the ROS context is shut down.
-
-    SIGINT shuts the context down while a worker may still be certifying a frame; publishing its
-    results then raised ``RCLError: Failed to publish: publisher's context is invalid``. Publishing
-    is skipped (counted in ``skipped``) when ``ok()`` is False, and a publish that fails because the
-    shutdown happened meanwhile is skipped too; any other failure is raised as before.
-    """
-
-    def __init__(self, publisher: Any, ok: Callable[[], bool]):
-        self.publisher = publisher
-        self.ok = ok
-        self.skipped = 0
-
-    def publish(self, msg: Any) -> None:
-        if not self.ok():
-            self.skipped += 1
-            return
-        try:
-            self.publisher.publish(msg)
-        except Exception:
-            if self.ok():
-                raise
-            self.skipped += 1
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.publisher, name)
 
 
 class PosePublishers:
@@ -194,7 +94,6 @@ class Throttle:
 
 
 TF_STATIC_TOPIC = "/tf_static"
-TF_MESSAGE_TYPE = "tf2_msgs/msg/TFMessage"
 
 
 class StaticExtrinsic:

@@ -24,7 +24,7 @@ from ..bridge.config import PwsConfig, check_consistency, config_from_params
 from ..bridge.params import SPECS, ParamSpec, spec_table, validate_param
 from ..bridge.msgtypes import MESSAGE_TYPES
 from ..core.errors import PwsError
-from ._common import TF_MESSAGE_TYPE, ShutdownSafePublisher, still_running_workers
+from ._base import TF_MESSAGE_TYPE, ShutdownSafePublisher, ignore_further_interrupts, quiet_teardown, still_running_workers
 
 try:  # Iron and later
     from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
@@ -274,16 +274,27 @@ def run(node_name: str, factory: Callable[[Node], Any], args: list[str] | None =
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        # Ctrl-C in a terminal: SIGINT reaches every process of the group, then ros2 launch sends its own;
+        # that second SIGINT raised KeyboardInterrupt inside destroy_node. Shutting down already: ignore it,
+        # and run every step even if one is interrupted before the handler is in place.
+        ignore_further_interrupts()
         ctx = getattr(logic, "ctx", None)
-        if ctx is not None:
-            ctx.closing = True  # a worker still busy publishes nothing from now on
-        if logic is not None and hasattr(logic, "close"):
-            logic.close()
-        node.destroy_node()
-        busy = still_running_workers()
-        if busy:  # said by name after destroy_node: rosout cannot publish once SIGINT shut the context down
-            get_logger(node_name).info(f"shutdown: the frame in flight is abandoned ({', '.join(busy)} still busy)")
-        rclpy.try_shutdown()
+
+        def mark_closing() -> None:
+            if ctx is not None:
+                ctx.closing = True  # a worker still busy publishes nothing from now on
+
+        def close_logic() -> None:
+            if logic is not None and hasattr(logic, "close"):
+                logic.close()
+
+        def say_busy() -> None:
+            busy = still_running_workers()
+            if busy:  # said by name after destroy_node: rosout cannot publish once SIGINT shut the context down
+                get_logger(node_name).info(f"shutdown: the frame in flight is abandoned ({', '.join(busy)} still busy)")
+
+        quiet_teardown([mark_closing, close_logic, node.destroy_node, say_busy, rclpy.try_shutdown],
+                       lambda _level, text: get_logger(node_name).info(text))
     # The node's process ends here, without the interpreter's teardown: with a worker still inside torch
     # (shutdown is polled between axes) that teardown aborts ("terminate called without an active
     # exception", SIGABRT), and on a loaded machine it can outlast the 5 s ros2 launch grants after
