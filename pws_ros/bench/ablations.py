@@ -22,6 +22,14 @@ from .machine import PeakMemory
 class Ablations:
     """σ, partitions, empirical robustness, denoiser and scaling stages (need the Bench's models, views, plans)."""
 
+    @staticmethod
+    def _record_all(records: list[dict], recs: list[dict], truth: int, **fields: Any) -> None:
+        """Append certificate records to ``records`` with ``fields`` and ``correct`` (label == truth)."""
+        for r in recs:
+            r.update(fields)
+            r["correct"] = bool(r.get("label") == truth)
+            records.append(r)
+
     # -- ablations -----------------------------------------------------------------------------
     def stage_sigma(self) -> list[dict]:
         s = self.s
@@ -48,10 +56,7 @@ class Ablations:
                         continue
                     recs, _ = self._certify_plan(v.one_frame, v.intrinsics, rendered.plan, model, self.config(sigma=sigma),
                                                  rendered=rendered, with_anchors=False)
-                    for r in recs:
-                        r.update(head)
-                        r["correct"] = bool(r["label"] == truth)
-                        records.append(r)
+                    self._record_all(records, recs, truth, **head)
                     self.log(f"sigma {sigma:g} scene {scene} {axis}: pairwise={recs[0]['status']} paper={recs[1]['status']}")
         return records
 
@@ -67,10 +72,8 @@ class Ablations:
             for N in s.partition_counts:
                 plan = grid_plan("pws_of", axis, b, N)
                 recs, _ = self._certify_plan(v.one_frame, v.intrinsics, plan, model, self.config(), with_anchors=False)
-                for r in recs:
-                    r.update(scene=scene, view=vi, axis=axis, radius_requested=b, method="pws_of", true_label=truth, grid=int(N))
-                    r["correct"] = bool(r["label"] == truth)
-                    records.append(r)
+                self._record_all(records, recs, truth, scene=scene, view=vi, axis=axis, radius_requested=b, method="pws_of",
+                                 true_label=truth, grid=int(N))
                 self.log(f"partitions N={N} scene {scene} {axis}: pairwise={recs[0]['status']} min p_A={recs[0]['min_p_a_lower']:.3f}")
         return records
 
@@ -124,11 +127,8 @@ class Ablations:
                             continue
                         recs, _ = self._certify_plan(v.one_frame, v.intrinsics, rendered.plan, model, self.config(n=s.denoiser_n),
                                                      denoiser=self.denoiser if use else None, rendered=rendered, with_anchors=False)
-                        for r in recs:
-                            r.update(scene=scene, view=vi, axis=axis, radius_requested=PAPER_RADIUS[axis], method="pws_of",
-                                     true_label=truth, classifier=key, denoiser=use)
-                            r["correct"] = bool(r["label"] == truth)
-                            records.append(r)
+                        self._record_all(records, recs, truth, scene=scene, view=vi, axis=axis, radius_requested=PAPER_RADIUS[axis],
+                                         method="pws_of", true_label=truth, classifier=key, denoiser=use)
                         self.log(f"denoiser={use} classifier {key} scene {scene} {axis}: pairwise={recs[0]['status']}")
         return records
 

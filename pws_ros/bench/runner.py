@@ -283,10 +283,7 @@ class Bench(Ablations):
                                            "error": str(exc)} for c in COVERAGES], None
                     if method == "pws_of" and rendered is not None:
                         self.rendered[(i, axis, method)] = rendered
-                    for r in recs:
-                        r.update(head, method=method, planned_partitions=int(plan.num_partitions))
-                        r["correct"] = bool(r.get("label") == truth)
-                        records.append(r)
+                    self._record_all(records, recs, truth, **head, method=method, planned_partitions=int(plan.num_partitions))
                     pw = recs[0]
                     self.log(f"certify scene {scene} {axis} {method:6s}: N={pw.get('num_partitions')} "
                              f"(planned {plan.num_partitions}) pairwise={pw['status']} paper={recs[1]['status']} "
