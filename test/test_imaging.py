@@ -1,7 +1,8 @@
 """The surfel imaging model (pws_ros.core.imaging) against an independent brute force.
 
-The reference below re-implements the model from its written definition (module doc of
-core/imaging.py) with plain Python loops in float64: surfel corners, projection P' = R^T (P - t),
+The reference below re-implements the model from its written definition (docs/imaging.md, the page
+that defines it: sample points in its section 5, footprints and occlusion order in 6, the crop and
+factor rule in 3, binning in 4) with plain Python loops in float64: surfel corners, projection P' = R^T (P - t),
 axis-aligned footprint of the four projected corners, one sample point per native pixel (centre plus
 the documented R2 offset), the least squared distance from the recorded camera centre wins, exact ties
 to the lower index, background where
@@ -28,7 +29,9 @@ from pws_ros.core.partition import Plan, make_grid
 AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
 SCALE = {"tx": 0.03, "ty": 0.03, "tz": 0.05, "rx": 0.03, "ry": 0.03, "rz": 0.06}
 CAM = CameraIntrinsics(8, 6, 7.0, 7.5, 3.5, 2.5, "cam")   # native 8x6, model 4x3: factor 2
-OVERLAP, JITTER, PLASTIC = 0.15, 0.33, 1.32471795724474602596  # from the documented model
+# from the documented model (docs/imaging.md): surfel overlap (section 6), the sample points' largest
+# offset and the plastic number of their R2 pattern (section 5)
+OVERLAP, JITTER, PLASTIC = 0.15, 0.33, 1.32471795724474602596
 
 
 def reference_native(points, colors, cam, axis, a, background):
@@ -310,6 +313,7 @@ def test_boxes_from_segment_values_refuse_malformed_input():
 
 
 def test_imaging_errors_and_crop():
+    """The crop and factor rule of docs/imaging.md, section 3 (k_max = min(W // w, H // h), centred crop)."""
     with pytest.raises(PwsError, match="smaller than the classifier's input 16x12"):
         make_imaging("surfel", CAM, (12, 16))
     with pytest.raises(PwsError, match="masks the whole"):
@@ -322,7 +326,7 @@ def test_imaging_errors_and_crop():
 
 
 def reference_bins(points, colors, cam):
-    """The binned cloud of a rendered camera ``cam`` (documented in bin_cloud), loops only: one point per
+    """The binned cloud of a rendered camera ``cam`` (docs/imaging.md, section 4), loops only: one point per
     rendered pixel hit at alpha = 0, on the ray through its centre at the nearest depth of the bin, with
     the mean colour; bins row by row."""
     bins: dict[tuple[int, int], list[int]] = {}
@@ -342,6 +346,8 @@ def reference_bins(points, colors, cam):
 
 
 def test_render_factor_bins_the_camera_and_keeps_the_crop():
+    """docs/imaging.md, section 3: k = min(render_factor, k_max) (k_max when 0), s = k_max // k, crop offset
+    (W - s k w) // 2, and the binned camera's intrinsics."""
     cam = CameraIntrinsics(640, 480, 460.0, 460.0, 319.5, 239.5, "cam")
     im = make_imaging("surfel", cam, (90, 160), render_factor=2)
     c = im.camera
