@@ -1,0 +1,87 @@
+"""The report's measure: on held-out frames, the smoothed prediction (``n`` noisy samples at sigma,
+majority vote, ties to the lower class) against the teacher's clean prediction, and p_A (the top
+class's share of the samples) and p_teacher (the teacher's class's share)."""
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from ..core.smoothing import clopper_pearson_lower, cohen_radius
+from .cache import RecordingCache, derive
+
+_EVAL = 21
+QUANTILES = (0.0, 0.1, 0.25, 0.5, 0.75, 0.9, 1.0)
+
+
+def heldout_items(caches: list[RecordingCache], splits: list[range]) -> list[tuple[int, int]]:
+    return [(ci, k) for ci, s in enumerate(splits) for k in s]
+
+
+@torch.no_grad()
+def smoothed_counts(model: Callable[[torch.Tensor], torch.Tensor], caches: list[RecordingCache], items: list[tuple[int, int]],
+                    *, sigma: float, n: int, seed: int, batch_size: int, device: torch.device, num_classes: int,
+                    progress: Callable[[int], None] | None = None) -> np.ndarray:
+    """(K, C) class counts of ``n`` noisy copies of each held-out alpha = 0 frame. The noise of frame
+    (recording, index) depends only on the seed and that frame: before and after see the same draws."""
+    out = np.zeros((len(items), num_classes), dtype=np.int64)
+    for row, (ci, k) in enumerate(items):
+        c = caches[ci]
+        x = torch.from_numpy(np.asarray(c.views[k, 0]).transpose(2, 0, 1).astype(np.float32) / 255.0).to(device)
+        g = torch.Generator(device=device).manual_seed(derive(seed, _EVAL, ci, c.frames[k]["index"]))
+        done = 0
+        while done < n:
+            b = min(batch_size, n - done)
+            noise = torch.randn((b,) + tuple(x.shape), generator=g, device=device) * float(sigma)
+            pred = model(x[None] + noise).argmax(dim=1).cpu().numpy()
+            out[row] += np.bincount(pred, minlength=num_classes)[:num_classes]
+            done += b
+        if progress is not None:
+            progress(1)
+    return out
+
+
+def _quantiles(values: np.ndarray) -> dict[str, float]:
+    if len(values) == 0:
+        return {}
+    return {f"q{int(round(q * 100)):02d}": float(np.quantile(values, q)) for q in QUANTILES}
+
+
+def summarize(counts: np.ndarray, teacher: np.ndarray, truth: np.ndarray, *, sigma: float, alpha: float = 0.001) -> dict[str, Any]:
+    """Aggregates of one model on the held-out frames (see the module doc); ``alpha``: the one-sided
+    Clopper-Pearson bound of p_A behind the pixel-space Cohen radius sigma * Phi^-1(p_A lower)."""
+    n = counts.sum(axis=1)
+    top = counts.argmax(axis=1)
+    p_a = counts[np.arange(len(top)), top] / np.maximum(n, 1)
+    p_teacher = counts[np.arange(len(top)), teacher] / np.maximum(n, 1)
+    agree = top == teacher
+    lower = np.asarray(clopper_pearson_lower(counts[np.arange(len(top)), top], n, alpha), dtype=np.float64)
+    radius = np.where(lower > 0.5, np.asarray(cohen_radius(np.clip(lower, 0.5, 1.0), sigma), dtype=np.float64), 0.0)
+    out: dict[str, Any] = {
+        "frames": int(len(top)),
+        "agreement": float(agree.mean()) if len(top) else None,
+        "p_a_mean": float(p_a.mean()) if len(top) else None,
+        "p_a_quantiles": _quantiles(p_a),
+        "p_teacher_mean": float(p_teacher.mean()) if len(top) else None,
+        "p_teacher_quantiles": _quantiles(p_teacher),
+        "l2_radius_median": float(np.median(np.where(agree, radius, 0.0))) if len(top) else None,
+    }
+    has = truth >= 0
+    if has.any():
+        out["accuracy_vs_truth"] = float((top[has] == truth[has]).mean())
+        out["frames_with_truth"] = int(has.sum())
+    return out
+
+
+def per_frame(counts: np.ndarray, teacher: np.ndarray) -> list[dict[str, Any]]:
+    n = counts.sum(axis=1)
+    rows = []
+    for i in range(len(counts)):
+        top = int(counts[i].argmax())
+        rows.append({"top": top, "p_a": float(counts[i, top] / max(1, n[i])), "p_teacher": float(counts[i, teacher[i]] / max(1, n[i])),
+                     "agrees": bool(top == int(teacher[i]))})
+    return rows
+
+
+__all__ = ["QUANTILES", "heldout_items", "per_frame", "smoothed_counts", "summarize"]

@@ -1,0 +1,403 @@
+"""One tuning run (:func:`finetune`): check, cache the frames, evaluate the teacher, train with
+checkpoints, save the model file, evaluate it, write the report."""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import resource
+import shutil
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..core.errors import PwsError, require
+from ..core.jsonable import jsonable
+from ..core.model import load_model, save_model, sidecar_path
+from ..core.render import resolve_device
+from ..replay.interrupt import Interrupted, StopSignals
+from ..replay.progress_log import Progress
+from .cache import FramePreparer, atomic_write_text
+from .evaluate import heldout_items, per_frame, smoothed_counts, summarize
+from .options import FinetuneOptions, FinetuneResult
+from .train import Student, Trainer, TrainSet, atomic_save, load_checkpoint, quiet_jit
+
+REPORT_FORMAT = "pws_ros-finetune-report-1"
+MANIFEST = "manifest.json"
+CHECKPOINT = "checkpoint.pt"
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _bag_stamp(path: Path) -> list:
+    """Size and modification time of a recording's files (a changed recording is a new cache)."""
+    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    return [[p.name, p.stat().st_size, int(p.stat().st_mtime)] for p in files]
+
+
+def _key(d: dict) -> str:
+    return hashlib.sha256(json.dumps(jsonable(d), sort_keys=True).encode()).hexdigest()[:32]
+
+
+def _peak_memory() -> dict[str, float]:
+    out = {"peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        out["peak_cuda_mb"] = torch.cuda.max_memory_allocated() / 2**20
+    return out
+
+
+class FinetuneRun:
+    def __init__(self, opts: FinetuneOptions):
+        self.opts = opts
+        self.warnings: list[str] = []
+        self.bar: Progress | None = None
+
+    # ---- logging ----
+    def log(self, level: str, message: str) -> None:
+        if level == "warn":
+            self.warnings.append(message)
+        if self.opts.log is not None:
+            self.opts.log(level, message)
+            return
+        if level == "info" and self.opts.quiet:
+            return
+        if self.bar is not None:
+            self.bar.clear()
+        prefix = "pws finetune: " + ("warning: " if level == "warn" else "")
+        print(prefix + message, file=sys.stderr, flush=True)
+
+    def progress(self, total: int | None, label: str, unit: str) -> Progress:
+        o = self.opts
+        mode = None if o.progress is None else ("bar" if o.progress else "off")
+        if o.quiet:
+            mode = "off"
+        elif o.log is not None and mode is None:
+            mode = "log"
+        self.bar = Progress(total, label=f"pws finetune: {label}", unit=unit, mode=mode, interval_s=o.progress_interval_s,
+                            emit=lambda line: self.log("info", f"{label}: {line}"))
+        return self.bar
+
+    def close_bar(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+    # ---- set-up ----
+    def _check_paths(self) -> None:
+        o = self.opts
+        for bag in o.bags:
+            require(Path(bag).exists(), f"recording not found: {bag}")
+        out = Path(o.out)
+        require(out.suffix != "", f"--out {out}: give a model file name such as tuned.pt")
+        require(not out.exists() or out.is_file(), f"--out {out} is a folder, not a model file")
+        require(out.resolve() != Path(o.model).resolve(), f"--out {out} is the input model itself")
+        require(o.overwrite or o.resume or not out.exists(), f"output {out} already exists: choose another --out or pass --overwrite")
+        work = o.resolved_work_dir()
+        if work.exists():
+            require(work.is_dir(), f"work folder {work} is a file")
+            ours = (work / MANIFEST).exists() or not any(work.iterdir())
+            if not o.resume:
+                require(o.overwrite, f"work folder {work} exists (an earlier run): pass --resume to continue it, or --overwrite to "
+                                     "start over")
+                require(ours, f"work folder {work} is not a pws finetune work folder: choose another --work-dir")
+                shutil.rmtree(work)
+        work.mkdir(parents=True, exist_ok=True)
+
+    def _manifest(self, teacher: Any, sigma: float) -> tuple[dict, str, str]:
+        o, c = self.opts, self.opts.config
+        cache = {"bags": [[str(Path(b).resolve()), _bag_stamp(Path(b))] for b in o.bags], "model_sha256": self.model_sha,
+                 "classes": list(teacher.class_names), "imaging": c.imaging, "render_factor": c.render_factor, "border": c.border,
+                 "background": c.background, "render_size": [c.render_height, c.render_width], "axes": list(c.axes),
+                 "radii": c.radii, "views": o.views, "seed": o.seed, "stride": o.stride, "max_frames": o.max_frames,
+                 "topics": dict(sorted(o.topics.items())), "sync": [c.sync_tolerance_s, c.sync_max_skew_s],
+                 "input_mode": c.input_mode}
+        train = {"cache": _key(cache), "sigma": sigma, "mode": o.mode, "targets": o.targets, "use_truth": o.use_truth,
+                 "holdout": o.holdout, "epochs": o.epochs, "batch_size": o.batch_size, "lr": o.learning_rate,
+                 "weight_decay": o.weight_decay, "mse_weight": o.mse_weight if o.mode == "denoiser" else None,
+                 "denoiser": [o.denoiser_channels, o.denoiser_depth, str(o.init_denoiser or "")] if o.mode == "denoiser" else None}
+        return {"cache": cache, "train": train}, _key(cache), _key(train)
+
+    def _check_manifest(self, work: Path, manifest: dict) -> None:
+        path = work / MANIFEST
+        if path.exists():
+            old = json.loads(path.read_text(encoding="utf-8"))
+            if old.get("cache") != jsonable(manifest["cache"]):
+                diff = sorted(k for k in manifest["cache"] if jsonable(manifest["cache"][k]) != old.get("cache", {}).get(k))
+                raise PwsError(f"--resume: the work folder {work} was made with other recordings, model or frame settings "
+                               f"({', '.join(diff) or 'format'} differ): run without --resume (with --overwrite) to start over")
+        atomic_write_text(path, json.dumps(jsonable(manifest), indent=1) + "\n")
+
+    # ---- the run ----
+    def run(self) -> FinetuneResult:
+        o = self.opts
+        o.check()
+        sigma = o.noise_sigma()
+        t_start = time.perf_counter()
+        device = resolve_device(o.device)
+        require(Path(o.model).is_file(), f"model file not found: {o.model}")
+        teacher = load_model(o.model, classes=o.classes, device=device)
+        require(teacher.num_classes >= 2, f"model {o.model} has {teacher.num_classes} output(s): a classifier needs at least 2 classes")
+        self.model_sha = _sha256(Path(o.model))
+        self._check_paths()
+        work = o.resolved_work_dir()
+        manifest, cache_key, train_key = self._manifest(teacher, sigma)
+        self._check_manifest(work, manifest)
+
+        from ..bridge.engine import FrameCertifier
+
+        # the engine only makes the imaging; its sigma is the teacher's own (no "sigma differs" warning here)
+        trained = teacher.meta.get("sigma")
+        ecfg = replace(o.config, sigma=float(trained) if isinstance(trained, (int, float)) and trained > 0 else sigma,
+                       device=str(device))
+        engine = FrameCertifier(ecfg, model=teacher, load=False,
+                                log=lambda level, msg: self.log("warn" if level in ("warn", "error") else "info", msg))
+        result = FinetuneResult(None, None, {})
+        with StopSignals() as stop:
+            try:
+                return self._run(teacher, engine, device, sigma, work, train_key, stop, t_start)
+            except KeyboardInterrupt as exc:
+                signame = exc.signame if isinstance(exc, Interrupted) else "SIGINT"
+                self.close_bar()
+                result.interrupted = signame
+                result.exit_code = Interrupted(signame).exit_code
+                result.message = (f"stopped by {signame}: {self.stopped_at}; the work folder {work} keeps what is done: "
+                                  "rerun the same command with --resume to continue")
+                result.report = {"interrupted": signame, "work_dir": str(work)}
+                return result
+
+    stopped_at = "while caching the frames"
+
+    def _run(self, teacher: Any, engine: Any, device: torch.device, sigma: float, work: Path, train_key: str, stop: Any,
+             t_start: float) -> FinetuneResult:
+        o = self.opts
+        # 1. the frames
+        t0 = time.perf_counter()
+        bar = self.progress(None, "caching frames", "frames")
+        prep = FramePreparer(o, teacher, engine, work, device=device, stop=stop, warn=lambda m: self.log("warn", m),
+                             info=lambda m: self.log("info", m), progress=bar)
+        caches = [prep.prepare(i, Path(b)) for i, b in enumerate(o.bags)]
+        self.close_bar()
+        prep_s = time.perf_counter() - t0
+        splits = [c.split(o.holdout) for c in caches]
+        train_split = [s for s, _ in splits]
+        held_split = [h for _, h in splits]
+        held = heldout_items(caches, held_split)
+        n_train = sum(len(s) for s in train_split)
+        self.log("info", f"{sum(c.count for c in caches)} frames cached in {prep_s:.0f} s: {n_train} to train on "
+                         f"({n_train * (1 + o.views)} images with the motion views), {len(held)} held out (the last "
+                         f"{o.holdout:.0%} of each recording)")
+        teacher_top = np.asarray([caches[ci].frames[k]["teacher"] for ci, k in held], dtype=np.int64)
+        truth = np.asarray([caches[ci].frames[k]["truth_label"] for ci, k in held], dtype=np.int64)
+
+        # 2. the teacher under noise (the "before"), kept in the work folder for a resumed run
+        before_path = work / f"before_{train_key}.npy"
+        if before_path.exists():
+            before = np.load(before_path)
+        else:
+            self.stopped_at = "while evaluating the original model"
+            before = self._evaluate(teacher, caches, held, sigma, device, teacher.num_classes, "evaluating the original model")
+            with stop.section():
+                np.save(before_path.with_name(before_path.name + ".tmp.npy"), before)
+                os.replace(before_path.with_name(before_path.name + ".tmp.npy"), before_path)
+
+        # 3. training
+        student = Student(o.mode, Path(o.model), device, channels=o.denoiser_channels, depth=o.denoiser_depth,
+                          init_denoiser=o.init_denoiser)
+        data = TrainSet(caches, train_split, o.use_truth)
+        trainer = Trainer(student, data, sigma=sigma, epochs=o.epochs, batch_size=o.batch_size, lr=o.learning_rate,
+                          weight_decay=o.weight_decay, targets=o.targets, mse_weight=o.mse_weight, seed=o.seed, device=device)
+        ckpt_path = work / CHECKPOINT
+        elapsed_before = 0.0
+        if o.resume:
+            state = load_checkpoint(ckpt_path, train_key, device)
+            if state is not None:
+                trainer.load(state)
+                elapsed_before = float(state.get("elapsed_s", 0.0))
+                self.log("info", f"resuming from the checkpoint at step {trainer.step}/{trainer.total}")
+        elif ckpt_path.exists():
+            ckpt_path.unlink()
+        truth_frames = sum(1 for c, s in zip(caches, train_split) for k in s if c.frames[k]["truth_label"] >= 0) if o.use_truth else 0
+        self.log("info", f"training the {o.mode} ({student.num_params()} parameters) on {device}: {trainer.total} steps "
+                         f"({o.epochs} epochs x {trainer.steps_per_epoch}) of {o.batch_size} noisy images at sigma {sigma:g}, "
+                         f"targets: " + (f"ground truth on {truth_frames} frame(s), " if truth_frames else "")
+                         + f"the teacher's {'probabilities' if o.targets == 'soft' else 'top class'}")
+        t_train = time.perf_counter()
+        bar = self.progress(trainer.total, "training", "steps")
+        bar.update(trainer.step)
+
+        def checkpoint() -> None:
+            with stop.section():
+                atomic_save(trainer.state(train_key, elapsed_before + time.perf_counter() - t_train), ckpt_path)
+
+        last_ckpt = time.monotonic()
+        try:
+            while trainer.step < trainer.total:
+                with stop.section():
+                    loss = trainer.one_step()
+                bar.update(1, note=f"loss {loss:.3f}")
+                if trainer.epoch_end or (o.checkpoint_every_s > 0 and time.monotonic() - last_ckpt >= o.checkpoint_every_s):
+                    checkpoint()
+                    last_ckpt = time.monotonic()
+                if o.on_step is not None:
+                    o.on_step(trainer.step)
+        except KeyboardInterrupt:
+            self.stopped_at = f"training at step {trainer.step}/{trainer.total} (checkpoint saved)"
+            self.close_bar()
+            with stop.section():
+                atomic_save(trainer.state(train_key, elapsed_before + time.perf_counter() - t_train), ckpt_path)
+            raise
+        self.close_bar()
+        train_s = elapsed_before + time.perf_counter() - t_train
+        self.log("info", f"trained in {train_s:.0f} s" + (f" ({train_s / 60:.1f} min)" if train_s > 90 else ""))
+
+        # 4. the model file (and the denoiser alone), written atomically
+        self.stopped_at = "while writing the model file"
+        with stop.section():
+            paths = self._save(student, teacher, caches, splits, sigma, trainer, work)
+        model_path = paths[0]
+
+        # 5. the tuned model under noise, loaded back from its file (the contract checked)
+        self.stopped_at = "while evaluating the tuned model (the model file is written)"
+        tuned = load_model(model_path, device=device)
+        after = self._evaluate(tuned, caches, held, sigma, device, teacher.num_classes, "evaluating the tuned model")
+
+        report = self._report(teacher, caches, splits, held, before, after, teacher_top, truth, sigma, trainer, student,
+                              device, prep_s, train_s, time.perf_counter() - t_start, model_path, paths[1:])
+        report_path = self.opts.report_path()
+        with stop.section():
+            atomic_write_text(report_path, json.dumps(jsonable(report), indent=1) + "\n")
+        if not o.keep_work:
+            shutil.rmtree(work, ignore_errors=True)
+        return FinetuneResult(model_path, report_path, report, 0, "", "", list(paths[1:]))
+
+    def _evaluate(self, model: Any, caches, held, sigma, device, classes, label) -> np.ndarray:
+        bar = self.progress(len(held), label, "frames")
+        counts = smoothed_counts(model, caches, held, sigma=sigma, n=self.opts.eval_samples, seed=self.opts.seed,
+                                 batch_size=max(1, self.opts.batch_size), device=device, num_classes=classes,
+                                 progress=bar.update)
+        self.close_bar()
+        return counts
+
+    def _save(self, student: Student, teacher: Any, caches, splits, sigma: float, trainer: Trainer, work: Path) -> list[Path]:
+        o = self.opts
+        out = Path(o.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        info = {k: v for k, v in teacher.meta.items() if k not in ("format", "class_names", "input_height", "input_width", "sigma")}
+        info["sigma"] = float(sigma)
+        tuned = {"tool": "pws finetune", "mode": o.mode, "from_model": str(Path(o.model).resolve()), "from_sha256": self.model_sha,
+                 "from_sigma": teacher.meta.get("sigma"), "sigma": float(sigma),
+                 "recordings": [{"bag": c.bag, "frames": c.count, "trained_on": len(s), "held_out": len(h),
+                                 "first_held_out_stamp_ns": c.frames[h.start]["stamp_ns"]} for c, (s, h) in zip(caches, splits)],
+                 "views_per_frame": o.views, "axes": list(o.config.axes), "radii": o.config.radii, "imaging": o.config.imaging,
+                 "render_factor": o.config.render_factor, "holdout": o.holdout, "stride": o.stride, "targets": o.targets,
+                 "ground_truth_used": o.use_truth, "epochs": o.epochs, "steps": trainer.total, "batch_size": o.batch_size,
+                 "lr": o.learning_rate, "seed": o.seed, "report": o.report_path().name}
+        info["finetune"] = tuned
+        tmp = work / "model_out.pt"
+        module = student.export_module()
+        with quiet_jit():
+            if o.mode == "denoiser":
+                module = torch.jit.script(module)
+            save_model(module, tmp, teacher.class_names, input_size=teacher.input_size, meta=jsonable(info))
+        _move(tmp, out)
+        _move(sidecar_path(tmp), sidecar_path(out))
+        paths = [out]
+        if o.mode == "denoiser":
+            from ..sim.train import save_denoiser
+
+            dtmp = work / "denoiser_out.pt"
+            save_denoiser(student.trainable.eval(), dtmp, sigma, teacher.input_size, meta=jsonable({"finetune": tuned}))
+            _move(dtmp, o.denoiser_path())
+            paths.append(o.denoiser_path())
+        return paths
+
+    def _report(self, teacher, caches, splits, held, before, after, teacher_top, truth, sigma, trainer, student, device,
+                prep_s, train_s, total_s, model_path, extra) -> dict:
+        o = self.opts
+        b, a = summarize(before, teacher_top, truth, sigma=sigma), summarize(after, teacher_top, truth, sigma=sigma)
+        rows = []
+        for (ci, k), pb, pa in zip(held, per_frame(before, teacher_top), per_frame(after, teacher_top)):
+            f = caches[ci].frames[k]
+            rows.append({"recording": caches[ci].bag, "index": f["index"], "stamp_ns": f["stamp_ns"],
+                         "teacher": teacher.class_name(f["teacher"]),
+                         "truth": (teacher.class_name(f["truth_label"]) if f["truth_label"] >= 0 else None),
+                         "before": {**pb, "top": teacher.class_name(pb["top"])}, "after": {**pa, "top": teacher.class_name(pa["top"])}})
+        return {
+            "format": REPORT_FORMAT,
+            "model": str(model_path), "extra_files": [str(p) for p in extra], "teacher_model": str(o.model),
+            "mode": o.mode, "sigma": sigma, "eval_samples": o.eval_samples,
+            "measure": ("held-out alpha = 0 frames (the last part of each recording by time, never trained on): the smoothed "
+                        "prediction (majority of eval_samples noisy copies at sigma) against the original model's clean "
+                        "prediction; p_a = the top class's share of the copies, p_teacher = the clean prediction's share; "
+                        "l2_radius_median = median over frames of sigma * Phi^-1(p_a lower bound, alpha 0.001) where the "
+                        "smoothed prediction agrees (0 elsewhere); the same noise draws before and after"),
+            "before": b, "after": a,
+            "recordings": [{"bag": c.bag, "frames": c.count, "trained_on": len(s), "held_out": len(h),
+                            "input_frames_seen": c.info.get("input_frames_seen"),
+                            "input_frames_skipped": c.info.get("input_frames_skipped")} for c, (s, h) in zip(caches, splits)],
+            "frames": {"views_per_frame": o.views, "axes": list(o.config.axes), "radii": o.config.radii,
+                       "imaging": o.config.imaging, "render_factor": o.config.render_factor, "shape": list(caches[0].views.shape[1:])},
+            "training": {"steps": trainer.total, "epochs": o.epochs, "batch_size": o.batch_size, "lr": o.learning_rate,
+                         "targets": o.targets, "ground_truth_used": o.use_truth, "trainable_parameters": student.num_params(),
+                         "history": trainer.history, "seed": o.seed, "device": str(device)},
+            "seconds": {"frames": round(prep_s, 1), "training": round(train_s, 1), "total": round(total_s, 1)},
+            "memory": _peak_memory(),
+            "per_frame": rows,
+            "warnings": self.warnings,
+        }
+
+
+def _move(src: Path, dst: Path) -> None:
+    try:
+        os.replace(src, dst)
+    except OSError:  # another file system (--work-dir elsewhere): copy beside, then rename
+        tmp = dst.with_name(dst.name + ".tmp")
+        shutil.copyfile(src, tmp)
+        os.replace(tmp, dst)
+        src.unlink(missing_ok=True)
+
+
+def finetune(options: FinetuneOptions) -> FinetuneResult:
+    """Run ``pws finetune`` (see :mod:`pws_ros.finetune`). PwsError for bad input (one line)."""
+    return FinetuneRun(options).run()
+
+
+def summary_lines(result: FinetuneResult) -> list[str]:
+    """The human summary of a finished run."""
+    r = result.report
+    if result.interrupted or "before" not in r:
+        return [result.message] if result.message else []
+    b, a = r["before"], r["after"]
+
+    def q(d: dict, key: str) -> str:
+        v = d.get(key)
+        return "-" if v is None else f"{v:.3f}"
+
+    lines = [f"model: {result.model_path}" + "".join(f"\n  also: {p}" for p in result.extra_files),
+             f"report: {result.report_path}",
+             f"held-out frames: {b['frames']} at sigma {r['sigma']:g}, {r['eval_samples']} noise samples each",
+             f"{'':28s}{'before':>10s}{'after':>10s}",
+             f"{'agreement with the teacher':28s}{q(b, 'agreement'):>10s}{q(a, 'agreement'):>10s}",
+             f"{'p_A median':28s}{q(b['p_a_quantiles'], 'q50'):>10s}{q(a['p_a_quantiles'], 'q50'):>10s}",
+             f"{'p_A 10% quantile':28s}{q(b['p_a_quantiles'], 'q10'):>10s}{q(a['p_a_quantiles'], 'q10'):>10s}",
+             f"{'p_teacher mean':28s}{q(b, 'p_teacher_mean'):>10s}{q(a, 'p_teacher_mean'):>10s}"]
+    if "accuracy_vs_truth" in a:
+        lines.append(f"{'accuracy (ground truth)':28s}{q(b, 'accuracy_vs_truth'):>10s}{q(a, 'accuracy_vs_truth'):>10s}")
+    s, m = r["seconds"], r["memory"]
+    lines.append(f"time: frames {s['frames']:.0f} s, training {s['training']:.0f} s, total {s['total']:.0f} s; peak memory "
+                 f"{m['peak_rss_mb']:.0f} MB" + (f", GPU {m['peak_cuda_mb']:.0f} MB" if "peak_cuda_mb" in m else ""))
+    return lines
+
+
+__all__ = ["FinetuneRun", "finetune", "summary_lines"]
