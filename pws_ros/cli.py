@@ -12,7 +12,7 @@ import sys
 from . import __version__
 from .core.errors import PwsError
 
-COMMANDS = ("plan", "render", "certify", "audit", "replay", "bench", "sim", "train", "export_model")
+COMMANDS = ("plan", "render", "certify", "audit", "replay", "bench", "sim", "train", "export_model", "finetune")
 
 DESCRIPTION = """\
 Certify that an image classifier keeps its prediction under camera motion, with Pixel-wise
@@ -30,6 +30,7 @@ examples:
       --model bags/models/classifier_sigma0.50.pt --axis ry --radius 0.0044 --n 256
   pws replay bags/demo --report /tmp/report                 # certify a rosbag2 recording
   pws export-model my_net.py:build --input-size 224x224 --classes classes.txt --imagenet --out my_net.pt
+  pws finetune my_recording.mcap --model my_net.pt --sigma 0.25 --out my_net_s025.pt   # noise-robust, no labels
 run `pws COMMAND --help` for each command."""
 
 
