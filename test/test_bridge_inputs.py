@@ -46,8 +46,11 @@ def test_rgbd_frames_are_matched_and_converted():
     raw = asm.on_color(color_msg(103 * MS))
     assert raw is not None and raw.source == "rgbd" and raw.stamp_ns == 103 * MS and raw.header.frame_id == "cam"
     frame = convert(raw, cfg)
-    assert len(frame.cloud) == 47 and frame.intrinsics == CAM and frame.has_color
+    # depth_fill: row (the default): the one pixel without depth is filled, every pixel is a point
+    assert len(frame.cloud) == 48 and frame.cloud.filled == 1 and frame.intrinsics == CAM and frame.has_color
     np.testing.assert_allclose(frame.cloud.colors, 200 / 255, atol=1e-6)
+    off = convert(raw, config_from_params({"input_mode": "rgbd", "sync_tolerance_s": 0.005, "depth_fill": "off"}))
+    assert len(off.cloud) == 47 and off.cloud.filled == 0
     # beyond the tolerance: no frame at once (within sync_max_skew_s it waits to be settled)
     asm.on_depth(depth_msg(200 * MS))
     assert asm.on_color(color_msg(210 * MS)) is None
@@ -85,7 +88,7 @@ def test_rgbd_pair_waits_for_the_first_camera_info():
     assert asm.on_color(color_msg(2)) is None and asm.dropped == 1  # the pair of stamp 1 is replaced
     raw = asm.on_info(info_msg())
     assert raw is not None and raw.stamp_ns == 2 and not asm.waiting_for_info and asm.frames == 1
-    assert len(convert(raw, asm.config).cloud) == 47
+    assert len(convert(raw, asm.config).cloud) == 48   # the pixel without depth filled (depth_fill: row)
     assert asm.on_info(info_msg()) is None  # nothing held any more
     asm.on_depth(depth_msg(3))
     raw = asm.on_color(color_msg(3))  # from now on the latest CameraInfo completes each pair at once

@@ -419,7 +419,8 @@ def test_unregistered_depth_is_registered_with_the_extrinsic_from_tf_static(bus)
     transform arrives; then registered, and the cloud is the brute-force one written here."""
     from pws_ros.nodes.cloud_listener import CloudListenerNode
 
-    ctx = Context(bus, "cloud_listener", **params("unused.pt", depth_camera_info_topic="/cam/depth_info"))
+    # depth_fill off: the registered depth's own points (the fill is tested in test_depth_fill)
+    ctx = Context(bus, "cloud_listener", **params("unused.pt", depth_camera_info_topic="/cam/depth_info", depth_fill="off"))
     node = CloudListenerNode(ctx)
     fx, cx, cy, z_mm, shift_m = CAM.fx, CAM.cx, CAM.cy, 3000, 0.2   # a 0.2 m baseline at 3 m: 2 px
     mm = np.full((24, 32), z_mm, np.uint16)

@@ -16,9 +16,18 @@ from pws_ros.core.registration import Extrinsic, chain_transform, register_depth
 
 
 def brute_register(depth, dcam, ccam, R, t, millimetres):
-    """Reference: every valid depth pixel, one at a time; the smallest depth per colour pixel."""
+    """Reference: every valid depth pixel, one at a time, as the square patch [c -+ 1/2] x [r -+ 1/2]
+    at its depth; its projected corners' bounding box gives the patch centre's colour-frame depth to
+    every colour pixel whose centre lies in it (and always to the pixel the centre projects into),
+    cut to ceil(fx ratio) + 2 pixels a side after clipping to the image; the smallest depth wins."""
     H, W = ccam.height, ccam.width
+    cap = math.ceil(max(ccam.fx / dcam.fx, ccam.fy / dcam.fy)) + 2
     best = [[math.inf] * W for _ in range(H)]
+
+    def to_colour(r, c, z):
+        p = [(c - dcam.cx) * z / dcam.fx, (r - dcam.cy) * z / dcam.fy, z]
+        return [sum(R[i][k] * p[k] for k in range(3)) + t[i] for i in range(3)]
+
     for r in range(depth.shape[0]):
         for c in range(depth.shape[1]):
             d = float(depth[r, c])
@@ -30,14 +39,21 @@ def brute_register(depth, dcam, ccam, R, t, millimetres):
                 if not (math.isfinite(d) and d > 0):
                     continue
                 z = d
-            p = [(c - dcam.cx) * z / dcam.fx, (r - dcam.cy) * z / dcam.fy, z]
-            q = [sum(R[i][k] * p[k] for k in range(3)) + t[i] for i in range(3)]
-            if q[2] <= 0:
+            q = to_colour(r, c, z)
+            corners = [to_colour(r + dr, c + dc, z) for dr in (-0.5, 0.5) for dc in (-0.5, 0.5)]
+            if q[2] <= 0 or any(k[2] <= 0 for k in corners):
                 continue
-            col = math.floor(ccam.fx * q[0] / q[2] + ccam.cx + 0.5)
-            row = math.floor(ccam.fy * q[1] / q[2] + ccam.cy + 0.5)
-            if 0 <= row < H and 0 <= col < W and q[2] < best[row][col]:
-                best[row][col] = q[2]
+            us = [ccam.fx * k[0] / k[2] + ccam.cx + 0.5 for k in corners]
+            vs = [ccam.fy * k[1] / k[2] + ccam.cy + 0.5 for k in corners]
+            uc = math.floor(ccam.fx * q[0] / q[2] + ccam.cx + 0.5)
+            vc = math.floor(ccam.fy * q[1] / q[2] + ccam.cy + 0.5)
+            c0, c1 = min(math.ceil(min(us) - 0.5), uc), max(math.ceil(max(us) - 0.5), uc + 1)
+            r0, r1 = min(math.ceil(min(vs) - 0.5), vc), max(math.ceil(max(vs) - 0.5), vc + 1)
+            c0, c1, r0, r1 = max(c0, 0), min(c1, W), max(r0, 0), min(r1, H)
+            for row in range(r0, min(r1, r0 + cap)):
+                for col in range(c0, min(c1, c0 + cap)):
+                    if q[2] < best[row][col]:
+                        best[row][col] = q[2]
     out = np.zeros((H, W)) if millimetres else np.full((H, W), np.nan)
     for r in range(H):
         for c in range(W):

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
-from ..core.cloud import Cloud
+from ..core.cloud import DEPTH_FILLS, Cloud, fill_depth
 from ..core.errors import require
 from .msgconv import as_byte_array, byte_rows, frame_id_of, intrinsics_from_camera_info
 
@@ -172,14 +172,38 @@ def intrinsics_from_organized_cloud(arrays: PointCloudArrays, *, frame_id: str |
     return CameraIntrinsics(int(W), int(H), float(fx), float(fy), float(cx), float(cy), frame_id if frame_id is not None else arrays.frame_id)
 
 
-def cloud_and_intrinsics_from_pointcloud2(msg: Any, info_msg: Any | None = None,
-                                          fallback: CameraIntrinsics | None = None) -> tuple[Cloud, CameraIntrinsics, bool]:
+def fill_organized(arrays: PointCloudArrays, intr: CameraIntrinsics, *, min_valid: float = 0.0) -> Cloud:
+    """The cloud of an organized PointCloud2 whose invalid points are given a depth
+    (:func:`~pws_ros.core.cloud.fill_depth`): a measured point keeps its coordinates, a filled one is
+    back-projected through its pixel centre with ``intr`` at the filled depth; every point keeps the
+    colour of its pixel (drivers send the colour of points without depth). Row-major order."""
+    H, W = arrays.shape
+    require((H, W) == intr.shape, f"organized PointCloud2 {W}x{H} and its camera {intr.width}x{intr.height} differ in size")
+    z = arrays.xyz[:, 2].reshape(H, W)
+    depth = np.where(arrays.valid.reshape(H, W) & (z > 0), z, np.nan)
+    filled_depth, was_filled = fill_depth(depth, min_valid=min_valid)
+    xyz = arrays.xyz.copy()
+    rows, cols = np.nonzero(was_filled)
+    zf = filled_depth[rows, cols]
+    at = rows * W + cols
+    xyz[at, 0] = (cols - intr.cx) * zf / intr.fx
+    xyz[at, 1] = (rows - intr.cy) * zf / intr.fy
+    xyz[at, 2] = zf
+    keep = arrays.valid | was_filled.reshape(-1)
+    colors = arrays.rgb[keep] if arrays.rgb is not None else np.full((int(keep.sum()), 3), 0.5, dtype=np.float32)
+    return Cloud(xyz[keep], colors, filled=len(at))
+
+
+def cloud_and_intrinsics_from_pointcloud2(msg: Any, info_msg: Any | None = None, fallback: CameraIntrinsics | None = None, *,
+                                          depth_fill: str = "off", min_valid: float = 0.0) -> tuple[Cloud, CameraIntrinsics, bool]:
     """The cloud of a PointCloud2 and the camera to render it with: ``(cloud, intrinsics, has_color)``.
 
     Intrinsics come from ``info_msg`` (an organized cloud must then have its size), else from the
     organized grid (least squares), else ``fallback``; an unorganized cloud without CameraInfo or
-    fallback is refused.
+    fallback is refused. An organized cloud with ``depth_fill="row"`` has its invalid points filled
+    (:func:`fill_organized`); ``min_valid``: the least share of valid points of an organized cloud.
     """
+    require(depth_fill in DEPTH_FILLS, f"unknown depth_fill {depth_fill!r}: expected one of {', '.join(DEPTH_FILLS)}")
     conv = cloud_from_pointcloud2(msg)
     cloud, shape = conv
     frame = frame_id_of(msg)
@@ -195,8 +219,15 @@ def cloud_and_intrinsics_from_pointcloud2(msg: Any, info_msg: Any | None = None,
         intr = fallback
     if frame and not intr.frame_id:
         intr = replace(intr, frame_id=frame)
+    if shape is not None:
+        if depth_fill == "row":
+            cloud = fill_organized(conv.arrays, intr, min_valid=min_valid)
+        else:
+            share = float(conv.arrays.valid.mean()) if len(conv.arrays.valid) else 0.0
+            require(share >= min_valid, f"only {share:.1%} of the organized cloud's points are valid, below min_valid_depth "
+                                        f"{min_valid:.1%}: too little is measured to describe a scene")
     return cloud, intr, conv.has_color
 
 
 __all__ = ["CloudConversion", "POINTFIELD_DTYPES", "POINTFIELD_NAMES", "PointCloudArrays", "cloud_and_intrinsics_from_pointcloud2",
-           "cloud_from_pointcloud2", "intrinsics_from_organized_cloud", "pointcloud2_to_arrays"]
+           "cloud_from_pointcloud2", "fill_organized", "intrinsics_from_organized_cloud", "pointcloud2_to_arrays"]

@@ -237,7 +237,8 @@ def registration_problem(depth_msg: Any, color_msg: Any, info_msg: Any, depth_in
 
 
 def cloud_from_rgbd(depth_msg: Any, color_msg: Any, info_msg: Any, depth_info_msg: Any | None = None,
-                    *, require_same_frame: bool = True, extrinsic: Extrinsic | None = None) -> tuple[Cloud, CameraIntrinsics]:
+                    *, require_same_frame: bool = True, extrinsic: Extrinsic | None = None, depth_fill: str = "off",
+                    min_valid: float = 0.0) -> tuple[Cloud, CameraIntrinsics]:
     """The one-frame cloud of a depth + colour pair and the colour camera's intrinsics.
 
     Depth and colour must be *registered* (the depth resampled into the colour camera): same size
@@ -246,7 +247,8 @@ def cloud_from_rgbd(depth_msg: Any, color_msg: Any, info_msg: Any, depth_info_ms
     ``frame_id`` s must agree (:func:`registration_problem`). A pair that is not registered is
     registered here when ``extrinsic`` (depth -> colour optical frame) and ``depth_info_msg`` are
     given (:func:`~pws_ros.core.registration.register_depth`: nearest depth wins, holes stay holes);
-    otherwise PwsError: such data would paint points with the wrong colours.
+    otherwise PwsError: such data would paint points with the wrong colours. ``depth_fill`` and
+    ``min_valid``: see :func:`~pws_ros.core.cloud.cloud_from_rgbd` (applied in the colour camera).
     """
     problem = registration_problem(depth_msg, color_msg, info_msg, depth_info_msg, require_same_frame=require_same_frame)
     require(not problem or extrinsic is not None, f"{problem}; {ALIGNED_DEPTH_HINT}")
@@ -266,7 +268,7 @@ def cloud_from_rgbd(depth_msg: Any, color_msg: Any, info_msg: Any, depth_info_ms
     cframe = frame_id_of(color_msg)
     if cframe and not intr.frame_id:
         intr = replace(intr, frame_id=cframe)
-    return _core_cloud_from_rgbd(depth, rgb, intr), intr
+    return _core_cloud_from_rgbd(depth, rgb, intr, fill=depth_fill, min_valid=min_valid), intr
 
 
 __all__ = [

@@ -155,6 +155,13 @@ PARAMS: tuple[ParamSpec, ...] = (
               "or at the end of a recording, and logged as a WARN with its skew (the cloud's geometry and colour are then that far "
               "apart in time); 0 = only sync_tolerance_s", range=(0.0, 10.0), nodes=_IN, unit="s"),
     ParamSpec("sync_queue_size", 10, "messages buffered per input stream for stamp matching", range=(1, 1000), read_only=True, nodes=_IN),
+    ParamSpec("depth_fill", "row", "invalid depth (0, NaN, out of range) where the camera measured a colour: row = each such "
+              "pixel gets the depth of the farther of its nearest valid neighbours in its row (then column), so the frame has "
+              "no black holes and a filled point never occludes a measured one; the certificate is then about the cloud "
+              "with filled depth and counts the filled points; off = only measured pixels become points",
+              choices=("row", "off"), nodes=_IN),
+    ParamSpec("min_valid_depth", 0.1, "least share of an input frame's pixels with a valid depth (organized clouds, depth "
+              "images); below it the frame is an ERROR (too little is measured to describe a scene)", range=(0.0, 1.0), nodes=_IN),
     ParamSpec("require_same_frame", True, "refuse depth and colour with different non-empty frame ids (not registered)", nodes=_IN),
     ParamSpec("min_period_s", 0.0, "skip input frames closer than this to the last accepted one (0 = take every frame the worker can)",
               range=(0.0, 3600.0), nodes=_IN, unit="s"),

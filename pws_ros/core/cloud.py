@@ -23,12 +23,14 @@ def colors_to_float(colors: np.ndarray, what: str = "colors") -> np.ndarray:
     return out
 
 
-@dataclass
+@dataclass(eq=False)
 class Cloud:
-    """``points`` (N, 3) float64 metres in the camera optical frame; ``colors`` (N, 3) float32 in [0, 1]."""
+    """``points`` (N, 3) float64 metres in the camera optical frame; ``colors`` (N, 3) float32 in [0, 1];
+    ``filled``: how many of the points have a filled, not a measured, depth (:func:`fill_depth`)."""
 
     points: np.ndarray
     colors: np.ndarray
+    filled: int = 0   # points whose depth was filled (:func:`fill_depth`), not measured
 
     def __post_init__(self) -> None:
         pts = np.asarray(self.points)
@@ -73,21 +75,85 @@ class Cloud:
         np.savez_compressed(path, points=self.points, colors=self.colors)
 
 
-def cloud_from_rgbd(depth_m: np.ndarray, rgb: np.ndarray, intr: CameraIntrinsics) -> Cloud:
+DEPTH_FILLS = ("row", "off")
+DEFAULT_MIN_VALID_DEPTH = 0.1   # the least share of an image's pixels with valid depth that describes a scene
+
+
+def valid_depth(depth: np.ndarray) -> np.ndarray:
+    """Pixels with a valid depth: finite and > 0 (0, NaN, inf and negatives are a driver's "no return")."""
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(depth) & (depth > 0)
+
+
+def _fill_rows(depth: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every invalid pixel of a row with a valid pixel gets the larger (farther) depth of the nearest
+    valid pixels to its left and right in the row (the one that exists, near the row's ends)."""
+    H, W = depth.shape
+    cols = np.arange(W)
+    left = np.maximum.accumulate(np.where(valid, cols, -1), axis=1)            # nearest valid at or left, -1: none
+    flipped = np.maximum.accumulate(np.where(valid[:, ::-1], cols, -1), axis=1)
+    right = np.where(flipped >= 0, W - 1 - flipped, W)[:, ::-1]                  # nearest valid at or right, W: none
+    rows = np.arange(H)[:, None]
+    d_left = np.where(left >= 0, depth[rows, np.clip(left, 0, W - 1)], -np.inf)
+    d_right = np.where(right < W, depth[rows, np.clip(right, 0, W - 1)], -np.inf)
+    filled = np.maximum(d_left, d_right)
+    ok = np.isfinite(filled)
+    return np.where(valid, depth, np.where(ok, filled, np.nan)), valid | ok
+
+
+def fill_depth(depth: np.ndarray, *, min_valid: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The depth image with its invalid pixels filled: ``(filled depth, was_filled mask)``.
+
+    The rule (``depth_fill: row``), deterministic and part of the imaging model: an invalid pixel takes
+    the depth of the **farther** of the nearest valid pixels to its left and to its right in its row
+    (only one side exists near a row's end), so that a filled point never occludes a measured surface:
+    it continues the surface behind. A row with no valid pixel is filled the same way along its
+    column from the row-filled image. PwsError when fewer than ``min_valid`` of the pixels (a share
+    in [0, 1]) have a valid depth (no pixel at all is always an error): too little is measured to
+    describe a scene.
+    """
+    depth = np.asarray(depth, dtype=np.float64)
+    require(depth.ndim == 2 and depth.size > 0, f"depth must be a non-empty 2-D image, got shape {depth.shape}")
+    valid = valid_depth(depth)
+    share = float(valid.mean())
+    require(share > 0, "the depth image has no valid pixel (every depth is 0, NaN, inf or negative)")
+    require(share >= min_valid, f"only {share:.1%} of the depth image's pixels have a valid depth, below min_valid_depth "
+                                f"{min_valid:.1%}: too little is measured to describe a scene")
+    out, ok = _fill_rows(depth, valid)
+    if not ok.all():
+        cols_out, cols_ok = _fill_rows(out.T, ok.T)
+        out, ok = cols_out.T, cols_ok.T
+    return out, ok & ~valid
+
+
+def cloud_from_rgbd(depth_m: np.ndarray, rgb: np.ndarray, intr: CameraIntrinsics, *, fill: str = "off",
+                    min_valid: float = 0.0) -> Cloud:
     """The one-frame cloud: one point per valid depth pixel, at the pixel centre, with its colour.
 
     ``depth_m`` (H, W) metres (NaN, inf or <= 0 are invalid); ``rgb`` (H, W, 3) uint8 or float in
-    [0, 1]; ``intr`` must have the same size. Point order is row-major over valid pixels.
+    [0, 1]; ``intr`` must have the same size. Point order is row-major over the pixels kept.
+    ``fill="row"``: invalid pixels are given a depth first (:func:`fill_depth`, refusing an image with
+    less than ``min_valid`` valid pixels), so every pixel with a colour becomes a point; the cloud's
+    ``filled`` counts them. ``fill="off"`` keeps only the measured pixels.
     """
+    require(fill in DEPTH_FILLS, f"unknown depth_fill {fill!r}: expected one of {', '.join(DEPTH_FILLS)}")
     depth = np.asarray(depth_m, dtype=np.float64)
     require(depth.ndim == 2, f"depth must be a 2-D image, got shape {depth.shape}")
     rgb = np.asarray(rgb)
     require(rgb.ndim == 3 and rgb.shape[2] == 3, f"colour image must have shape (H, W, 3), got {rgb.shape}")
     require(depth.shape == rgb.shape[:2], f"depth {depth.shape[1]}x{depth.shape[0]} and colour {rgb.shape[1]}x{rgb.shape[0]} differ in size")
     require(depth.shape == intr.shape, f"image {depth.shape[1]}x{depth.shape[0]} does not match camera {intr.width}x{intr.height}")
-    valid = np.isfinite(depth) & (depth > 0)
+    num_filled = 0
+    if fill == "row":
+        depth, was_filled = fill_depth(depth, min_valid=min_valid)
+        num_filled = int(was_filled.sum())
+    elif min_valid > 0:
+        share = float(valid_depth(depth).mean()) if depth.size else 0.0
+        require(share >= min_valid, f"only {share:.1%} of the depth image's pixels have a valid depth, below min_valid_depth "
+                                    f"{min_valid:.1%}: too little is measured to describe a scene")
+    valid = valid_depth(depth)
     rows, cols = np.nonzero(valid)
     z = depth[rows, cols]
     x = (cols - intr.cx) * z / intr.fx
     y = (rows - intr.cy) * z / intr.fy
-    return Cloud(np.stack([x, y, z], axis=1), colors_to_float(rgb, "colour image")[rows, cols])
+    return Cloud(np.stack([x, y, z], axis=1), colors_to_float(rgb, "colour image")[rows, cols], filled=num_filled)

@@ -1,15 +1,23 @@
 """Depth registration: a depth image resampled into the colour camera (what depth_image_proc's
 ``register`` node does), and the rigid transforms it needs.
 
-Every valid depth pixel ``(r, c)`` is back-projected through its pixel centre with the depth
-camera's intrinsics (``X = (c - cx) Z / fx``, ROS convention), moved into the colour camera's
-optical frame with the depth -> colour :class:`Extrinsic` (``P_colour = R P_depth + t``) and
-projected with the colour intrinsics to the pixel whose centre is nearest
-(``col = floor(fx X/Z + cx + 1/2)``, the pixel-edge convention of :mod:`pws_ros.core.camera`).
-Where several depth pixels land in one colour pixel the nearest depth wins; colour pixels that no
-depth pixel reaches stay holes (0 for uint16 millimetres, NaN for float metres); points that land
-behind the colour camera or outside its image are dropped. Lens distortion is not modelled: both
-images are taken as rectified (pinhole), as everywhere else in this package.
+Every valid depth pixel ``(r, c)`` is a small square patch of the surface it measured: the square
+``[c - 1/2, c + 1/2] x [r - 1/2, r + 1/2]`` of the depth image (ROS pixel-centre coordinates) at its
+depth ``Z``, back-projected with the depth camera's intrinsics (``X = (c - cx) Z / fx``), moved into
+the colour camera's optical frame with the depth -> colour :class:`Extrinsic`
+(``P_colour = R P_depth + t``) and projected with the colour intrinsics. The patch's *footprint* is
+the bounding box of its four projected corners in pixel-edge coordinates (``u = fx X/Z + cx + 1/2``,
+the convention of :mod:`pws_ros.core.camera`); it gives its depth (the patch centre's ``Z`` in the
+colour frame) to every colour pixel whose centre ``(col + 1/2, row + 1/2)`` lies in
+``[umin, umax) x [vmin, vmax)``, and at least to the pixel its centre projects into
+(``col = floor(fx X/Z + cx + 1/2)``). Where several patches reach one colour pixel the nearest depth
+wins. A colour camera of higher resolution than the depth camera (a RealSense: fx 613 vs 390) so
+receives a depth at every colour pixel the depth camera saw, not one pixel per depth pixel (a footprint
+is cut to ``ceil(fx_colour / fx_depth) + 2`` pixels a side, so a degenerate one cannot flood the image); colour
+pixels that no patch reaches (what the depth camera did not see: parallax, invalid depth) stay holes
+(0 for uint16 millimetres, NaN for float metres). Patches with a corner behind the colour camera,
+and pixels outside its image, are dropped. Lens distortion is not modelled: both images are taken
+as rectified (pinhole), as everywhere else in this package.
 """
 from __future__ import annotations
 
@@ -124,6 +132,16 @@ def chain_transform(edges: Iterable[tuple[str, str, Extrinsic]], source: str, ta
     return out
 
 
+def _to_colour(rows: np.ndarray, cols: np.ndarray, z: np.ndarray, depth_camera: CameraIntrinsics,
+               extrinsic: Extrinsic) -> np.ndarray:
+    """Depth-image points ``(row, col)`` (pixel-centre coordinates) at depth ``z``, in the colour frame."""
+    pts = np.empty((len(z), 3))
+    pts[:, 0] = (cols - depth_camera.cx) * z / depth_camera.fx
+    pts[:, 1] = (rows - depth_camera.cy) * z / depth_camera.fy
+    pts[:, 2] = z
+    return extrinsic.apply(pts)
+
+
 def register_depth(depth: np.ndarray, depth_camera: CameraIntrinsics, color_camera: CameraIntrinsics,
                    extrinsic: Extrinsic) -> np.ndarray:
     """``depth`` (depth camera's image) as seen by the colour camera, in the colour camera's size.
@@ -131,7 +149,7 @@ def register_depth(depth: np.ndarray, depth_camera: CameraIntrinsics, color_came
     ``depth``: ``(H, W)`` uint16 millimetres (0 = invalid) or float metres (NaN, inf, <= 0 invalid),
     of ``depth_camera``'s size. ``extrinsic`` maps depth-camera points into the colour camera.
     Returns the same kind: uint16 millimetres with 0 in holes (rounded to the nearest millimetre),
-    or float metres (the input's float type) with NaN in holes. Nearest depth wins. (A uint16 pixel
+    or float metres (the input's float type) with NaN in holes. Nearest depth wins (see the module doc). (A uint16 pixel
     whose registered depth exceeds 65.535 m becomes 0, the driver's "no return".)
     """
     depth = np.asarray(depth)
@@ -150,22 +168,37 @@ def register_depth(depth: np.ndarray, depth_camera: CameraIntrinsics, color_came
             valid = np.isfinite(depth) & (depth > 0)
         rows, cols = np.nonzero(valid)
         z = depth[rows, cols].astype(np.float64)
-    pts = np.empty((len(z), 3))
-    pts[:, 0] = (cols - depth_camera.cx) * z / depth_camera.fx
-    pts[:, 1] = (rows - depth_camera.cy) * z / depth_camera.fy
-    pts[:, 2] = z
-    pts = extrinsic.apply(pts)
-    front = pts[:, 2] > 0
-    pts = pts[front]
-    zc = pts[:, 2]
-    with np.errstate(invalid="ignore", over="ignore"):
-        u = np.floor(color_camera.fx * pts[:, 0] / zc + color_camera.cx + 0.5)
-        v = np.floor(color_camera.fy * pts[:, 1] / zc + color_camera.cy + 0.5)
     H, W = color_camera.shape
-    inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
-    index = v[inside].astype(np.int64) * W + u[inside].astype(np.int64)
     best = np.full(H * W, np.inf)
-    np.minimum.at(best, index, zc[inside])
+    centre = _to_colour(rows, cols, z, depth_camera, extrinsic)
+    corners = [_to_colour(rows + dr, cols + dc, z, depth_camera, extrinsic) for dr in (-0.5, 0.5) for dc in (-0.5, 0.5)]
+    front = (centre[:, 2] > 0) & np.all([c[:, 2] > 0 for c in corners], axis=0)
+    zc = centre[front, 2]
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        uv = [(color_camera.fx * c[front, 0] / c[front, 2] + color_camera.cx + 0.5,
+               color_camera.fy * c[front, 1] / c[front, 2] + color_camera.cy + 0.5) for c in corners]
+        u_c = np.floor(color_camera.fx * centre[front, 0] / zc + color_camera.cx + 0.5)
+        v_c = np.floor(color_camera.fy * centre[front, 1] / zc + color_camera.cy + 0.5)
+    us, vs = np.stack([q[0] for q in uv]), np.stack([q[1] for q in uv])
+    # colour pixels whose centre lies in the footprint box: col in [ceil(umin - 1/2), ceil(umax - 1/2))
+    c0, c1 = np.ceil(us.min(0) - 0.5), np.ceil(us.max(0) - 0.5)
+    r0, r1 = np.ceil(vs.min(0) - 0.5), np.ceil(vs.max(0) - 0.5)
+    # the centre's own pixel always (a footprint narrower than a pixel may hold no pixel centre)
+    c0, c1 = np.minimum(c0, u_c), np.maximum(c1, u_c + 1)
+    r0, r1 = np.minimum(r0, v_c), np.maximum(r1, v_c + 1)
+    ok = np.isfinite(c0) & np.isfinite(c1) & np.isfinite(r0) & np.isfinite(r1) & (c1 > 0) & (c0 < W) & (r1 > 0) & (r0 < H)
+    c0, c1, r0, r1, zc = np.clip(c0[ok], 0, W), np.clip(c1[ok], 0, W), np.clip(r0[ok], 0, H), np.clip(r1[ok], 0, H), zc[ok]
+    nw, nh = (c1 - c0).astype(np.int64), (r1 - r0).astype(np.int64)
+    c0, r0 = c0.astype(np.int64), r0.astype(np.int64)
+    # a footprint is about fx_colour / fx_depth pixels wide; a degenerate one (a corner near the
+    # colour camera's plane) is cut to that size plus 2, so one stray pixel cannot flood the image
+    cap = int(math.ceil(max(color_camera.fx / depth_camera.fx, color_camera.fy / depth_camera.fy))) + 2
+    nw, nh = np.minimum(nw, cap), np.minimum(nh, cap)
+    wide, high = int(nw.max(initial=0)), int(nh.max(initial=0))
+    for dr in range(high):
+        for dc in range(wide):
+            m = (dc < nw) & (dr < nh)
+            np.minimum.at(best, (r0[m] + dr) * W + (c0[m] + dc), zc[m])
     hole = ~np.isfinite(best)
     if millimetres:
         mm = np.floor(best * 1000.0 + 0.5)
