@@ -171,8 +171,12 @@ def test_image_from_numpy_refusals_and_torch():
 
 def test_stamps():
     assert msgconv.stamp_to_ns(msgbuild.make_time(T, 3_000_000_007)) == 3_000_000_007
-    with pytest.raises(PwsError, match="non-negative"):
-        msgbuild.make_time(T, -1)
+    # negative stamps are valid ROS times (int32 sec, nanosec in [0, 1e9)): a frame stamped -5 s is certified
+    for ns in (-1, -5_000_000_000, -5_000_000_001):
+        t = msgbuild.make_time(T, ns)
+        assert 0 <= t.nanosec < 1_000_000_000 and msgconv.stamp_to_ns(t) == ns
+    with pytest.raises(PwsError, match="outside the range of a ROS time"):
+        msgbuild.make_time(T, 2**31 * 1_000_000_000)
     h = msgbuild.copy_header(T, msgbuild.make_header(T, 99, "a"), frame_id="b")
     assert msgconv.stamp_to_ns(h.stamp) == 99 and h.frame_id == "b"
 

@@ -37,9 +37,13 @@ def test_frame_tags():
     assert scheme.frame_tag(12, "tz", 3, 7) == "12/tz/3/7"
     tag = scheme.parse_frame_tag("12/Tz/3/7")
     assert (tag.stamp_ns, tag.axis, tag.index, tag.count) == (12, "tz", 3, 7)
-    for bad, msg in (("12/tz/3", "is not"), ("x/tz/3/7", "non-integer"), ("12/yaw/3/7", "unknown motion axis"), ("12/tz/0/0", "count >= 1")):
+    for bad, msg in (("12/tz/3", "is not"), ("x/tz/3/7", "non-integer"), ("12/yaw/3/7", "unknown motion axis"), ("12/tz/0/0", "count must be >= 1"),
+                     ("12/tz/7/7", r"index 7 is outside \[0, 7\)"), ("12/tz/-1/7", "index -1"), ("9" * 30 + "/tz/0/2", "range of a ROS time")):
         with pytest.raises(PwsError, match=msg):
             scheme.parse_frame_tag(bad)
+    with pytest.raises(PwsError, match="more than max_partitions 257"):  # the receiver's limit, before anything is built
+        scheme.parse_frame_tag("12/tz/999999999/1000000000", max_count=257)
+    assert scheme.parse_frame_tag("-5000000000/tz/0/3").stamp_ns == -5_000_000_000  # a negative stamp is a ROS time
 
 
 def test_plan_bundle_roundtrip(rendered):
@@ -59,7 +63,7 @@ def test_plan_bundle_refusals():
     with pytest.raises(PwsError, match="is not a pws_ros/plan-bundle/1 bundle"):
         scheme.plan_bundle_from_json('{"format": "x"}')
     with pytest.raises(PwsError, match="lacks field 'camera'"):
-        scheme.plan_bundle_from_json('{"format": "pws_ros/plan-bundle/1", "stamp_ns": 1, "frame_id": "", "method": "pws_of", "axes": []}')
+        scheme.plan_bundle_from_json('{"format": "pws_ros/plan-bundle/1", "stamp_ns": 1, "frame_id": "", "method": "pws_of", "axes": ["tz"]}')
 
 
 def test_frames_and_bounds_cross_exactly(rendered):

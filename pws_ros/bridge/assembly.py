@@ -4,6 +4,12 @@
 index against the expected count; a lost (gap), duplicate or out-of-range index, a count that
 disagrees with the plan, or a timeout makes the set *failed*: an incomplete partition set is never
 certified. A stamp that jumps back starts a new timeline (:mod:`pws_ros.bridge.timejump`).
+
+Anyone on the graph can publish on the four-process topics, so nothing here is sized by a message:
+counts above ``max_count`` (``max_partitions``) are refused, lost or missing indices are described by
+their runs (never enumerated), and the frames held for one ``(stamp, axis)`` stay within ``max_bytes``
+(a set that would pass it fails, naming the ceiling, and its frames are freed), so at most
+``max_pending`` x axes x ``max_bytes`` is held.
 """
 from __future__ import annotations
 
@@ -52,6 +58,7 @@ class _Group:
     count: int | None = None            # from the plan (authoritative) or the first frame tag
     tag_count: int | None = None
     frames: dict[int, Any] = field(default_factory=dict)
+    nbytes: int = 0                     # memory of the frames held
     next_index: int = 0
     bounds: Any = None
     has_bounds: bool = False
@@ -89,11 +96,14 @@ class PartitionAssembler(Timeline):
 
     def __init__(self, timeout_s: float = 10.0, max_pending: int = 4, clock: Callable[[], float] = time.monotonic,
                  expect_bounds: bool = True, jump_back_tolerance_ns: int = JUMP_BACK_TOLERANCE_NS,
-                 on_time_jump: Callable[[str], None] | None = None):
+                 on_time_jump: Callable[[str], None] | None = None, max_count: int | None = None,
+                 max_bytes: int | None = None):
         require(timeout_s > 0, f"assembly timeout must be positive, got {timeout_s}")
         require(int(max_pending) >= 1, f"max_pending must be >= 1, got {max_pending}")
         self.timeout_s = float(timeout_s)
         self.max_pending = int(max_pending)
+        self.max_count = None if max_count is None else int(max_count)   # most frames per (stamp, axis)
+        self.max_bytes = None if max_bytes is None else int(max_bytes)   # most bytes of frames held in all
         self.expect_bounds = bool(expect_bounds)
         self._init_timeline(jump_back_tolerance_ns, on_time_jump)
         self._newest: int | None = None
@@ -134,6 +144,23 @@ class PartitionAssembler(Timeline):
         self._released.clear()
         self._newest = None
 
+    @staticmethod
+    def _fail(g: _Group, reason: str) -> None:
+        """Mark ``g`` failed (the first reason stays) and free the frames it held."""
+        g.error = g.error or reason
+        g.frames.clear()
+        g.nbytes = 0
+
+    def held_bytes(self) -> int:
+        """Bytes of the frames held for every pending input frame."""
+        with self._lock:
+            return sum(g.nbytes for fr in self._frames.values() for g in fr.axes.values())
+
+    def _too_many(self, count: int) -> str:
+        if self.max_count is not None and count > self.max_count:
+            return f"{count} frames announced, more than max_partitions {self.max_count}"
+        return ""
+
     def _group(self, stamp_ns: int, axis: str) -> _Group | None:
         """The group of ``(stamp, axis)`` (created if new); None for a stamp already released."""
         fr = self._frame(stamp_ns)
@@ -152,18 +179,18 @@ class PartitionAssembler(Timeline):
                 g.expected = True
                 g.info = (axis_info or {}).get(axis)
                 if isinstance(spec, str):
-                    g.error = g.error or spec
+                    self._fail(g, spec)
                     continue
                 count = int(spec)
-                if count < 1:
-                    g.error = g.error or f"the plan has {count} frames"
+                if count < 1 or self._too_many(count):
+                    self._fail(g, self._too_many(count) or f"the plan has {count} frames")
                     continue
                 g.count = count
                 if g.tag_count is not None and g.tag_count != count:
-                    g.error = g.error or f"frame tags say {g.tag_count} frames but the plan has {count}"
+                    self._fail(g, f"frame tags say {g.tag_count} frames but the plan has {count}")
                 bad = [i for i in g.frames if i >= count]
                 if bad and not g.error:
-                    g.error = f"frame index {bad[0]} out of range for {count} frames"
+                    self._fail(g, f"frame index {bad[0]} out of range for {count} frames")
             self._check(int(stamp_ns))
 
     def add_frame(self, stamp_ns: int, axis: str, index: int, count: int, frame: Any) -> None:
@@ -174,27 +201,35 @@ class PartitionAssembler(Timeline):
                 return
             if fr.expected_axes is not None and axis not in fr.expected_axes:
                 g = fr.axes.setdefault(axis, _Group())
-                g.error = g.error or f"frame for axis {axis!r} that the plan does not list"
+                self._fail(g, f"frame for axis {axis!r} that the plan does not list")
                 return
             g = fr.axes.setdefault(axis, _Group())
             if g.error:
                 return
+            if self._too_many(count) or count < 1:
+                self._fail(g, f"frame {index}: " + (self._too_many(count) or f"count {count}"))
+                self._check(stamp_ns)
+                return
             if g.tag_count is None:
                 g.tag_count = count
             limit = g.count if g.count is not None else g.tag_count
+            nbytes = int(getattr(frame, "nbytes", 0) or 0)
             if count != g.tag_count or (g.count is not None and count != g.count):
-                g.error = f"frame {index} says {count} frames but {limit} are expected"
+                self._fail(g, f"frame {index} says {count} frames but {limit} are expected")
             elif not 0 <= index < limit:
-                g.error = f"frame index {index} out of range for {limit} frames"
+                self._fail(g, f"frame index {index} out of range for {limit} frames")
             elif index in g.frames:
-                g.error = f"duplicate frame index {index}"
+                self._fail(g, f"duplicate frame index {index}")
             elif index > g.next_index:
-                missing = list(range(g.next_index, index))
-                g.error = f"lost frame(s) {_ranges(missing)} of {limit} (a later frame arrived first)"
+                self._fail(g, f"lost frame(s) {_span(g.next_index, index)} of {limit} (a later frame arrived first)")
             elif index < g.next_index:  # pragma: no cover - covered by the duplicate branch
-                g.error = f"frame index {index} arrived out of order"
+                self._fail(g, f"frame index {index} arrived out of order")
+            elif self.max_bytes is not None and g.nbytes + nbytes > self.max_bytes:
+                self._fail(g, f"the frames of this axis would need more than {self.max_bytes / 2**20:.0f} MiB "
+                              f"(half of max_memory_mb, as the planner budgets them) at frame {index} of {limit}")
             else:
                 g.frames[index] = frame
+                g.nbytes += nbytes
                 g.next_index = index + 1
             self._check(stamp_ns)
 
@@ -205,11 +240,13 @@ class PartitionAssembler(Timeline):
             if g is None:
                 return
             if g.has_bounds:
-                g.error = g.error or "duplicate bounds message"
+                self._fail(g, "duplicate bounds message")
             g.bounds, g.has_bounds = bounds, True
             limit = g.count if g.count is not None else g.tag_count
-            if limit is not None and int(count) != limit:
-                g.error = g.error or f"bounds are for {int(count)} frames but {limit} are expected"
+            if self._too_many(int(count)):
+                self._fail(g, f"bounds: {self._too_many(int(count))}")
+            elif limit is not None and int(count) != limit:
+                self._fail(g, f"bounds are for {int(count)} frames but {limit} are expected")
             elif g.tag_count is None:
                 g.tag_count = int(count)
             self._check(stamp_ns)
@@ -221,8 +258,24 @@ class PartitionAssembler(Timeline):
             g = self._group(stamp_ns, axis)
             if g is None:
                 return
-            g.error = g.error or str(reason)
+            self._fail(g, str(reason))
             self._check(stamp_ns)
+
+    def fail_frame(self, stamp_ns: int, axes: list[str], reason: str) -> bool:
+        """Every axis of input frame ``stamp_ns`` failed (e.g. a malformed plan named it): the axes its
+        plan expects, else ``axes`` and any that data arrived for. False (and counted in ``late``) for a
+        stamp already released: its one certification is out."""
+        with self._lock:
+            stamp_ns = int(stamp_ns)
+            fr = self._frame(stamp_ns)
+            if fr is None:
+                return False
+            if fr.expected_axes is None:
+                fr.expected_axes = list(dict.fromkeys(list(axes) + list(fr.axes)))
+            for axis in fr.expected_axes:
+                self._fail(fr.axes.setdefault(axis, _Group()), str(reason))
+            self._check(stamp_ns)
+            return True
 
     def knows(self, stamp_ns: int) -> bool:
         """Whether ``stamp_ns`` is pending or was released."""
@@ -262,9 +315,8 @@ class PartitionAssembler(Timeline):
                 if g.count is None:
                     parts.append("no plan arrived")
                 if count:
-                    missing = [i for i in range(count) if i not in g.frames]
-                    if missing:
-                        parts.append(f"missing frame(s) {_ranges(missing)} of {count}")
+                    if len(g.frames) < count:
+                        parts.append(f"missing frame(s) {_missing(g.frames, count)} of {count}")
                 elif not g.frames:
                     parts.append("no frame arrived")
                 if self.expect_bounds and not g.has_bounds:
@@ -289,16 +341,24 @@ class PartitionAssembler(Timeline):
             return list(self._frames)
 
 
-def _ranges(indices: list[int]) -> str:
-    """``[1, 2, 3, 7]`` -> ``"1-3, 7"`` (at most 6 runs shown)."""
-    runs: list[tuple[int, int]] = []
-    for i in sorted(indices):
-        if runs and i == runs[-1][1] + 1:
-            runs[-1] = (runs[-1][0], i)
-        else:
-            runs.append((i, i))
-    text = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in runs[:6])
-    return text + (f", ... ({len(indices)} in all)" if len(runs) > 6 else "")
+def _span(a: int, b: int) -> str:
+    """The indices ``a .. b - 1`` as text (``"3"`` or ``"3-9"``), whatever their number."""
+    return f"{a}" if b - a == 1 else f"{a}-{b - 1}"
+
+
+def _missing(present: Any, count: int) -> str:
+    """The indices in ``[0, count)`` not in ``present`` as runs, ``"1-3, 7"`` (at most 6 runs shown),
+    computed from the indices present: never one item per missing index."""
+    runs: list[str] = []
+    total = 0
+    start = 0
+    for i in sorted(i for i in present if 0 <= i < count) + [count]:
+        if i > start:
+            total += 1
+            if len(runs) < 6:
+                runs.append(_span(start, i))
+        start = i + 1
+    return ", ".join(runs) + (f", ... ({count - len(present)} in all)" if total > 6 else "")
 
 
 __all__ = ["AssembledFrame", "AxisSet", "PartitionAssembler"]

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics
 from ..core.cloud import DEPTH_FILLS, Cloud, fill_depth
-from ..core.errors import require
+from ..core.errors import PwsError, require
 from .msgconv import as_byte_array, byte_rows, frame_id_of, intrinsics_from_camera_info
 
 # sensor_msgs/PointField datatypes
@@ -64,6 +64,38 @@ def _field_table(msg: Any) -> dict[str, tuple[int, int, int]]:
     return table
 
 
+PLAUSIBLE_M = (1e-6, 1e6)   # |coordinate| of a point a camera measured, in metres (or exactly 0)
+
+
+def _plausible_share(xyz: np.ndarray) -> float:
+    """The share of the finite non-origin points whose x, y, z are each 0 or within ``PLAUSIBLE_M``
+    (NaN/inf and origin points are a driver's "no return", not evidence)."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        a = np.abs(xyz)
+        ok = np.all((a == 0) | ((a >= PLAUSIBLE_M[0]) & (a <= PLAUSIBLE_M[1])), axis=1)
+        used = np.any(xyz != 0, axis=1) & np.all(np.isfinite(xyz), axis=1)
+    n = int(used.sum())
+    return float((ok & used).sum()) / n if n else 1.0
+
+
+def _check_byte_order(xyz: np.ndarray, fields: dict[str, tuple[int, int, int]], pts: np.ndarray, big: bool) -> None:
+    """PwsError when ``is_bigendian`` is evidently wrong: the coordinates read in the declared byte order
+    are mostly implausible (denormal ~1e-41 m, or beyond 1e6 m) and read in the other order they are
+    plausible. Certifying such a cloud would certify garbage points (seen live: z ~ 4.6e-41 m)."""
+    if len(xyz) == 0 or _plausible_share(xyz) >= 0.5:
+        return
+    swapped = []
+    for axis in ("x", "y", "z"):
+        off, dt, _ = fields[axis]
+        dtype = np.dtype(POINTFIELD_DTYPES[dt]).newbyteorder("<" if big else ">")
+        swapped.append(np.ascontiguousarray(pts[:, off: off + dtype.itemsize]).view(dtype).reshape(-1).astype(np.float64))
+    if _plausible_share(np.stack(swapped, axis=1)) >= 0.9:
+        declared, other = ("big", "little") if big else ("little", "big")
+        raise PwsError(f"PointCloud2 says is_bigendian={bool(big)}, but its x, y, z read {declared}-endian are implausible "
+                       f"(|coordinate| below {PLAUSIBLE_M[0]:g} m or above {PLAUSIBLE_M[1]:g} m) and read {other}-endian they are "
+                       f"plausible: the publisher sets is_bigendian wrongly")
+
+
 def pointcloud2_to_arrays(msg: Any) -> PointCloudArrays:
     """Decode a ``sensor_msgs/PointCloud2`` (any field offsets, padding, endianness, layout)."""
     width = int(getattr(msg, "width", 0))
@@ -110,6 +142,7 @@ def pointcloud2_to_arrays(msg: Any) -> PointCloudArrays:
         return raw.view(dtype).reshape(-1)
 
     xyz = np.stack([column(a).astype(np.float64) for a in ("x", "y", "z")], axis=1)
+    _check_byte_order(xyz, fields, pts, big)
     valid = np.all(np.isfinite(xyz), axis=1) & np.any(xyz != 0.0, axis=1)
     xyz[~valid] = np.nan
     rgb = None

@@ -174,8 +174,57 @@ def depth_to_meters(msg: Any) -> np.ndarray:
 
 # ---- camera info --------------------------------------------------------------------------
 
+# distortion models of sensor_msgs/distortion_models.hpp (and "" for none)
+KNOWN_DISTORTION_MODELS = ("", "plumb_bob", "rational_polynomial", "equidistant")
+MAX_CAMERA_SIDE = 16384   # px: a CameraInfo larger than this is refused (it sizes arrays; no camera is that large)
+
+
+def _array_field(msg: Any, name: str) -> Any:
+    value = getattr(msg, name, None)
+    return [] if value is None else value
+
+
+def _finite_numbers(values: Any, what: str) -> np.ndarray:
+    """A CameraInfo array field as float64, PwsError naming the first NaN or inf entry."""
+    try:
+        arr = np.asarray(values, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise PwsError(f"CameraInfo {what} is not a sequence of numbers") from None
+    bad = np.flatnonzero(~np.isfinite(arr))
+    if bad.size:
+        raise PwsError(f"CameraInfo {what}[{int(bad[0])}] is {arr[bad[0]]}: every {what} coefficient must be finite")
+    return arr
+
+
+def distortion_note(msg: Any) -> str:
+    """What the imaging does with a CameraInfo's distortion ("" when there is nothing to say): it takes
+    every image as rectified (pinhole, no distortion), so an unknown model, or non-zero coefficients,
+    mean the certified frames are not exactly the camera's images."""
+    model = str(getattr(msg, "distortion_model", "") or "")
+    try:
+        d = np.asarray(_array_field(msg, "d"), dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        return ""  # refused with its reason by intrinsics_from_camera_info
+    if model not in KNOWN_DISTORTION_MODELS:
+        return (f"CameraInfo distortion model {model[:40]!r} is not one of {', '.join(m for m in KNOWN_DISTORTION_MODELS if m)}: "
+                "its coefficients are ignored; the imaging takes the images as rectified (pinhole, no distortion)")
+    if d.size and np.isfinite(d).all() and np.any(d != 0):
+        return (f"CameraInfo has non-zero {model} distortion coefficients: the imaging takes the images as rectified "
+                "(pinhole, no distortion); certify rectified images (image_proc) for frames that match the camera")
+    return ""
+
+
 def intrinsics_from_camera_info(msg: Any) -> CameraIntrinsics:
-    """Pinhole intrinsics of a ``sensor_msgs/CameraInfo`` (K; binning and ROI must be unused)."""
+    """Pinhole intrinsics of a ``sensor_msgs/CameraInfo`` (K; binning and ROI must be unused; K and the
+    distortion coefficients D finite; at most ``MAX_CAMERA_SIDE`` px a side). The distortion is not
+    modelled: images are taken as rectified (:func:`distortion_note` says what that ignores)."""
+    _finite_numbers(_array_field(msg, "k"), "K")
+    _finite_numbers(_array_field(msg, "d"), "D")
+    try:
+        w, h = int(msg.width), int(msg.height)
+    except (TypeError, ValueError, OverflowError):
+        raise PwsError("CameraInfo has a malformed image size") from None
+    require(w <= MAX_CAMERA_SIDE and h <= MAX_CAMERA_SIDE, f"CameraInfo size {w}x{h} is above {MAX_CAMERA_SIDE} px a side")
     bx, by = int(getattr(msg, "binning_x", 0) or 0), int(getattr(msg, "binning_y", 0) or 0)
     require(bx <= 1 and by <= 1, f"CameraInfo uses binning {bx}x{by}, which is not supported; publish the binned camera's own CameraInfo")
     roi = getattr(msg, "roi", None)
@@ -273,6 +322,7 @@ def cloud_from_rgbd(depth_msg: Any, color_msg: Any, info_msg: Any, depth_info_ms
 
 __all__ = [
     "ALIGNED_DEPTH_HINT", "SUPPORTED_ENCODINGS", "as_byte_array", "byte_rows", "cloud_from_rgbd", "color_to_numpy",
-    "depth_to_meters", "extrinsic_from_transform", "frame_id_of", "header_stamp_ns", "image_to_numpy", "intrinsics_from_camera_info",
+    "depth_to_meters", "distortion_note", "extrinsic_from_transform", "KNOWN_DISTORTION_MODELS", "MAX_CAMERA_SIDE",
+    "frame_id_of", "header_stamp_ns", "image_to_numpy", "intrinsics_from_camera_info",
     "registration_problem", "stamp_to_ns", "transforms_from_tf_message",
 ]

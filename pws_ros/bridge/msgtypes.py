@@ -89,9 +89,13 @@ def make(cls: Any, **fields: Any) -> Any:
 # ---- basic pieces -------------------------------------------------------------------------
 
 def make_time(types: Any, stamp_ns: int) -> Any:
+    """A ``builtin_interfaces/Time`` (int32 ``sec``, uint32 ``nanosec`` in [0, 1e9)) of ``stamp_ns``.
+    Negative stamps are valid ROS times (a simulation clock, a driver that sends them: ``sec`` < 0), and a
+    frame stamped so is certified like any other in both modes."""
     stamp_ns = int(stamp_ns)
-    require(stamp_ns >= 0, f"stamp must be non-negative, got {stamp_ns} ns")
-    return make(types.Time, sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
+    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+    require(-(2**31) <= sec < 2**31, f"stamp {stamp_ns} ns is outside the range of a ROS time (int32 seconds)")
+    return make(types.Time, sec=sec, nanosec=nanosec)
 
 
 def make_header(types: Any, stamp_ns: int, frame_id: str = "") -> Any:

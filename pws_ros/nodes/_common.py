@@ -93,6 +93,29 @@ class Throttle:
             self._count[key] = self._count.get(key, 0) + 1
 
 
+def guarded(ctx: Any, throttle: "Throttle", topic: str, fn: Callable[[Any], None],
+            on_bad: Callable[[Any, str], None] | None = None) -> Callable[[Any], None]:
+    """A subscription callback that never raises: a malformed message (PwsError) or any other failure
+    of ``fn`` is one throttled WARN naming the topic and the problem (a failure that is not a PwsError
+    also names its type: a bug to report), then ``on_bad(msg, text)`` (e.g. count it). Any process on
+    the graph may publish on a node's topics; a callback that raises would end the node's spin."""
+    def cb(msg: Any) -> None:
+        try:
+            fn(msg)
+            return
+        except PwsError as exc:
+            text = " ".join(str(exc).split())
+        except Exception as exc:  # noqa: BLE001 - keep the node alive, and say what happened
+            text = f"unexpected {type(exc).__name__}: {' '.join(str(exc).split())[:300]}"
+        try:
+            throttle(ctx.log, "warn", f"{topic}: ignoring a message: {text}", key=f"bad:{topic}")
+            if on_bad is not None:
+                on_bad(msg, text)
+        except Exception:  # noqa: BLE001 - a failing logger must not end the spin either
+            pass
+    return cb
+
+
 TF_STATIC_TOPIC = "/tf_static"
 
 
@@ -173,24 +196,26 @@ class InputFrontend:
         self.assembler.matcher.on_time_jump = jump_logger(ctx)
         self.throttle = Throttle()
         self.received = 0
+        self._distortion_noted: set[tuple[str, str]] = set()
         T = ctx.types
         self.subs = []
         mode = cfg.input_mode
         if mode in ("auto", "pointcloud2"):
-            self.subs.append(ctx.subscription(T.PointCloud2, cfg.points_topic, self._wrap(self.assembler.on_points)))
+            self.subs.append(ctx.subscription(T.PointCloud2, cfg.points_topic, self._wrap(self.assembler.on_points, topic=cfg.points_topic)))
         self.static_tf = StaticExtrinsic(self.assembler, ctx.log)
         if mode in ("auto", "rgbd"):
-            self.subs.append(ctx.subscription(T.Image, cfg.depth_topic, self._wrap(self.assembler.on_depth, "depth")))
-            self.subs.append(ctx.subscription(T.Image, cfg.color_topic, self._wrap(self.assembler.on_color, "color")))
+            self.subs.append(ctx.subscription(T.Image, cfg.depth_topic, self._wrap(self.assembler.on_depth, "depth", cfg.depth_topic)))
+            self.subs.append(ctx.subscription(T.Image, cfg.color_topic, self._wrap(self.assembler.on_color, "color", cfg.color_topic)))
             # the depth -> colour extrinsic of unregistered depth (latched: reliable, transient local);
             # rclpy_types always has TFMessage, an in-memory test context may leave it out
             if getattr(T, "TFMessage", None) is not None:
                 self.subs.append(ctx.subscription(T.TFMessage, TF_STATIC_TOPIC, self._on_tf_static, kind="tf_static", depth=100))
         # CameraInfo is needed by both modes (optional for organized clouds)
-        self.subs.append(ctx.subscription(T.CameraInfo, cfg.camera_info_topic, self._wrap(self.assembler.on_info)))
+        self.subs.append(ctx.subscription(T.CameraInfo, cfg.camera_info_topic,
+                                          self._wrap(self.assembler.on_info, topic=cfg.camera_info_topic, info=True)))
         dinfo = depth_info_topic(cfg) if mode in ("auto", "rgbd") else ""
         if dinfo:  # refuses depth whose camera is not the colour camera's (not registered)
-            self.subs.append(ctx.subscription(T.CameraInfo, dinfo, self._wrap(self.assembler.on_depth_info)))
+            self.subs.append(ctx.subscription(T.CameraInfo, dinfo, self._wrap(self.assembler.on_depth_info, topic=dinfo, info=True)))
         topics = ([cfg.points_topic] if mode != "rgbd" else []) + ([cfg.depth_topic, cfg.color_topic] if mode != "pointcloud2" else [])
         ctx.log("info", f"input mode {mode}: listening on {', '.join(ctx.resolve(t) for t in topics)} "
                         f"+ {ctx.resolve(cfg.camera_info_topic)}" + (f" (depth camera info {ctx.resolve(dinfo)})" if dinfo else ""))
@@ -198,18 +223,31 @@ class InputFrontend:
     def _on_tf_static(self, msg: Any) -> None:
         try:
             self.static_tf.on_tf_static(msg)
-        except PwsError as exc:
-            self.throttle(self.ctx.log, "warn", f"{TF_STATIC_TOPIC}: {exc}")
+        except Exception as exc:  # noqa: BLE001 - a malformed /tf_static message must not end the spin
+            text = str(exc) if isinstance(exc, PwsError) else f"unexpected {type(exc).__name__}: {exc}"
+            self.throttle(self.ctx.log, "warn", f"{TF_STATIC_TOPIC}: {text}", key=TF_STATIC_TOPIC)
 
-    def _wrap(self, handler: Callable[[Any], RawFrame | None], image: str = "") -> Callable[[Any], None]:
+    def _note_camera_info(self, topic: str, msg: Any) -> None:
+        """Say once per topic and distortion model what the imaging does with a CameraInfo's distortion."""
+        note = msgconv.distortion_note(msg)
+        key = (topic, str(getattr(msg, "distortion_model", "")))
+        if note and key not in self._distortion_noted and len(self._distortion_noted) < 64:
+            self._distortion_noted.add(key)
+            self.ctx.log("warn", f"{topic}: {note}")
+
+    def _wrap(self, handler: Callable[[Any], RawFrame | None], image: str = "", topic: str = "input",
+              info: bool = False) -> Callable[[Any], None]:
         def cb(msg: Any) -> None:
             self.received += 1
             try:
                 if image:
                     self.static_tf.saw(image, msg)
+                if info:
+                    self._note_camera_info(topic, msg)
                 frame = handler(msg)
-            except PwsError as exc:
-                self.throttle(self.ctx.log, "warn", f"input: {exc}")
+            except Exception as exc:  # noqa: BLE001 - a malformed message must never end the spin
+                text = str(exc) if isinstance(exc, PwsError) else f"unexpected {type(exc).__name__}: {exc}"
+                self.throttle(self.ctx.log, "warn", f"input {topic}: {text}", key=f"input:{topic}")
                 return
             if frame is None and image and self.assembler.waiting_for_info:
                 self.throttle(self.ctx.log, "warn", f"input: a depth + colour pair waits for {self.assembler.waiting_for()}; "

@@ -7,6 +7,12 @@ duplicate or out-of-range frame; an incomplete partition set is never certified 
 reported as ERROR with the reason). The newest assembled frame is certified by a worker thread
 (older ones are dropped and counted).
 
+Anyone on the graph may publish on these topics. Every message is checked before anything is built
+from it (counts against ``max_partitions``, frame sizes against the plan's, frames and bounds against
+half of ``max_memory_mb``); a malformed one is a throttled WARN naming the topic and the problem, and
+when it names its input frame (a plan's stamp, a frame tag, a bounds label) that frame's axis (every
+axis, for a plan) is an ERROR in the frame's one certification message.
+
 Publishes (reliable): ``certification`` (DiagnosticArray, one per input frame: header = source
 stamp + frame id, one status ``pws/<axis>`` per axis; key schema in :mod:`pws_ros.bridge.msgbuild`),
 ``certification/markers`` (MarkerArray) and ``/diagnostics`` (health: rate, drops, device).
@@ -19,9 +25,9 @@ from dataclasses import replace
 from typing import Any
 
 from ..bridge import msgbuild, outputs, scheme
-from ..bridge.assembly import AssembledFrame, AxisSet, PartitionAssembler
+from ..bridge.assembly import AssembledFrame, PartitionAssembler
 from ..core.errors import PwsError
-from ._common import HealthPublisher, Throttle, Worker, jump_logger, start
+from ._common import HealthPublisher, Throttle, Worker, guarded, jump_logger, start
 
 NODE_NAME = "certifier"
 POLL_S = 0.05
@@ -38,7 +44,8 @@ class CertifierNode:
         cfg = ctx.config
         self.engine = FrameCertifier(cfg, log=ctx.log)  # loads the model now (PwsError -> exit 2)
         self.assembler = PartitionAssembler(timeout_s=cfg.assembly_timeout_s, max_pending=cfg.max_pending_frames,
-                                            on_time_jump=jump_logger(ctx))
+                                            on_time_jump=jump_logger(ctx), max_count=cfg.max_partitions,
+                                            max_bytes=self._max_bytes(cfg))
         self.bundles: OrderedDict[int, scheme.PlanBundle] = OrderedDict()
         self.replanned: set[int] = set()  # released stamps planned again, not yet flowing
         self.throttle = Throttle()
@@ -48,22 +55,57 @@ class CertifierNode:
         self.pubs = outputs.OutputPublishers(ctx, (outputs.CERTIFICATION, outputs.MARKERS))
         self.worker = Worker("pws-certifier", self._process, ctx.log)
         frames_depth = cfg.frames_qos_depth
+        def sub(msg_type: Any, topic: str, fn: Any, depth: int) -> Any:
+            cb = guarded(ctx, self.throttle, topic, fn, on_bad=lambda _m, _t: self._count_bad())
+            return ctx.subscription(msg_type, topic, cb, kind="reliable", depth=depth)
+
         self.subs = [
-            ctx.subscription(T.String, "plan", self._on_plan, kind="reliable", depth=max(10, cfg.output_qos_depth)),
-            ctx.subscription(T.Image, "rendered/frames", self._on_frame, kind="reliable", depth=frames_depth),
-            ctx.subscription(T.Float64MultiArray, "rendered/bounds", self._on_bounds, kind="reliable", depth=max(10, cfg.output_qos_depth)),
-            ctx.subscription(T.String, "rendered/errors", self._on_error, kind="reliable", depth=max(10, cfg.output_qos_depth)),
+            sub(T.String, "plan", self._on_plan, max(10, cfg.output_qos_depth)),
+            sub(T.Image, "rendered/frames", self._on_frame, frames_depth),
+            sub(T.Float64MultiArray, "rendered/bounds", self._on_bounds, max(10, cfg.output_qos_depth)),
+            sub(T.String, "rendered/errors", self._on_error, max(10, cfg.output_qos_depth)),
         ]
         self.timer = ctx.timer(POLL_S, self._poll)
         self.health = HealthPublisher(ctx, self._counters)
 
     def _on_change(self, cfg: Any) -> None:
         self.assembler.timeout_s = cfg.assembly_timeout_s
+        self.assembler.max_count = cfg.max_partitions
+        self.assembler.max_bytes = self._max_bytes(cfg)
+
+    @staticmethod
+    def _max_bytes(cfg: Any) -> int:
+        """The most bytes of frames (or of one bounds message) of one axis: half of ``max_memory_mb``, the
+        share the planner gives them (the rest is the certifier's own working memory)."""
+        return int(cfg.max_memory_mb * 2**20) // 2
 
     # -- inputs --
-    def _bad(self, what: str, exc: PwsError) -> None:
+    def _count_bad(self) -> None:
         self.bad_messages += 1
-        self.throttle(self.ctx.log, "warn", f"ignoring {what}: {exc}", key=what)
+
+    def _malformed(self, owner: tuple[int, str] | None, what: str, exc: Exception) -> None:
+        """A malformed message that names its input frame (``owner`` = (stamp, axis)): that axis is an ERROR
+        in the frame's certification; raised on, so that the guard logs and counts it."""
+        if owner is not None:
+            stamp, axis = owner
+            self._start(stamp)
+            self.assembler.fail(stamp, axis, f"malformed {what}: {exc}")
+        raise exc
+
+    def _fail_frame(self, stamp_ns: int, reason: str) -> None:
+        """Every axis of input frame ``stamp_ns`` is an ERROR (a malformed plan named it): the axes of its
+        plan, or the configured ones; nothing for a frame already certified (its one certification is out)."""
+        bundle = self.bundles.pop(stamp_ns, None)
+        axes = list(bundle.axes) if bundle is not None else list(self.ctx.config.axes)
+        if self.assembler.fail_frame(stamp_ns, axes, reason):
+            self._poll()
+
+    def _expected_shape(self, stamp_ns: int) -> tuple[int, int] | None:
+        """(H, W) of the frames the plan of ``stamp_ns`` renders, when that plan is known."""
+        bundle = self.bundles.get(stamp_ns)
+        if bundle is None:
+            return None
+        return tuple(bundle.imaging.out_shape) if bundle.imaging is not None else bundle.camera.shape
 
     def _start(self, stamp_ns: int) -> None:
         """Tell the assembler what to expect once data for ``stamp_ns`` starts flowing (a plan the
@@ -75,14 +117,16 @@ class CertifierNode:
 
     def _on_plan(self, msg: Any) -> None:
         try:
-            bundle = scheme.parse_plan_bundle_message(msg)
+            bundle = scheme.parse_plan_bundle_message(msg, self.ctx.config.max_partitions)
         except PwsError as exc:
-            self._bad("plan message", exc)
-            return
+            stamp = scheme.plan_bundle_stamp(getattr(msg, "data", None))
+            if stamp is not None:
+                self._fail_frame(stamp, f"malformed plan message: {exc}")
+            raise
         S = bundle.stamp_ns
-        if not bundle.plans:  # nothing will be rendered: report now
-            axes = [AxisSet(S, a, 0, None, None, None, bundle.errors.get(a, "no plan")) for a in bundle.axes]
-            self.worker.submit(AssembledFrame(S, axes, bundle))
+        if not bundle.plans:  # nothing will be rendered: report now (through the assembler: one certification per frame)
+            self.assembler.expect(S, bundle.expected(), info=bundle)
+            self._poll()
             return
         self.bundles[S] = bundle
         while len(self.bundles) > MAX_BUNDLES:
@@ -93,36 +137,45 @@ class CertifierNode:
             self.replanned.add(S)
 
     def _on_frame(self, msg: Any) -> None:
+        cfg = self.ctx.config
+        frame_id = getattr(getattr(msg, "header", None), "frame_id", "")
         try:
-            tag, frame = scheme.parse_frame_message(msg)
+            tag = scheme.frame_message_tag(msg, cfg.max_partitions)
+            frame = scheme.frame_message_array(msg, tag, self._expected_shape(tag.stamp_ns), self._max_bytes(cfg))
         except PwsError as exc:
-            self._bad("rendered frame", exc)
-            return
+            self._malformed(scheme.tag_owner(frame_id), "rendered frame", exc)
         self._start(tag.stamp_ns)
         self.assembler.add_frame(tag.stamp_ns, tag.axis, tag.index, tag.count, frame)
 
     def _on_bounds(self, msg: Any) -> None:
+        cfg = self.ctx.config
         try:
-            b = scheme.parse_bounds_message(msg)
+            stamp, _axis, _count = scheme.bounds_label(msg, cfg.max_partitions)
+            b = scheme.parse_bounds_message(msg, cfg.max_partitions, self._max_bytes(cfg), self._expected_shape(stamp))
         except PwsError as exc:
-            self._bad("bounds message", exc)
-            return
+            label = msg.layout.dim[0].label if getattr(getattr(msg, "layout", None), "dim", None) else ""
+            self._malformed(scheme.tag_owner(label), "bounds message", exc)
         self._start(b.stamp_ns)
         self.assembler.add_bounds(b.stamp_ns, b.axis, b.count, b)
 
     def _on_error(self, msg: Any) -> None:
-        try:
-            stamp, axis, reason = scheme.parse_render_error(msg)
-        except PwsError as exc:
-            self._bad("render error message", exc)
-            return
+        stamp, axis, reason = scheme.parse_render_error(msg)
         self._start(stamp)
         self.assembler.fail(stamp, axis, f"projector: {reason}")
 
     def _poll(self) -> None:
         for frame in self.assembler.pop_ready():
             self.bundles.pop(frame.stamp_ns, None)
-            self.worker.submit(frame)
+            if any(a.ok for a in frame.axes):
+                self.worker.submit(frame)
+                continue
+            # nothing to certify: its ERROR certification goes out now, so that a burst of failed (or forged)
+            # frames never displaces a frame the worker is about to certify (its slot holds the newest only)
+            try:
+                self._process(frame)
+            except Exception as exc:  # noqa: BLE001 - a timer callback must not raise
+                self.throttle(self.ctx.log, "error", f"publishing the ERROR certification of frame {frame.stamp_ns} failed: "
+                                                     f"{type(exc).__name__}: {exc}", key="error-publish")
 
     # -- certification --
     def _process(self, frame: AssembledFrame) -> None:

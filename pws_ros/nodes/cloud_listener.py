@@ -4,15 +4,19 @@ Inputs (sensor-data QoS by default): an organized or unorganized ``PointCloud2``
 or a registered depth ``Image`` (16UC1 mm / 32FC1 m) on ``depth_topic`` + colour ``Image`` on
 ``color_topic`` + ``CameraInfo`` on ``camera_info_topic``, matched by stamp. Outputs (reliable):
 ``cloud`` (PointCloud2 x, y, z, rgb; source header) and ``cloud/camera_info`` (the intrinsics, same
-header). Health on ``/diagnostics``. Bad input is logged (throttled) and counted, never fatal.
+header). Health on ``/diagnostics``. Bad input is logged (throttled) and counted, never fatal; an input
+frame that cannot be converted is reported on ``cloud/errors`` (``std_msgs/String``, see
+:mod:`pws_ros.bridge.scheme`), which the planner and the certifier turn into that frame's ERROR
+certification, as the pipeline node publishes it for bad input.
 """
 from __future__ import annotations
 
 import sys
 from typing import Any
 
-from ..bridge import msgbuild
+from ..bridge import msgbuild, scheme
 from ..bridge.inputs import RawFrame, convert
+from ..core.errors import PwsError
 from ._common import HealthPublisher, InputFrontend, Worker, start
 
 NODE_NAME = "cloud_listener"
@@ -26,7 +30,9 @@ class CloudListenerNode:
         T = ctx.types
         self.pub_cloud = ctx.publisher(T.PointCloud2, "cloud")
         self.pub_info = ctx.publisher(T.CameraInfo, "cloud/camera_info")
+        self.pub_errors = ctx.publisher(T.String, "cloud/errors")
         self.published = 0
+        self.failed = 0
         self.worker = Worker("pws-listener", self._process, ctx.log)
         self.frontend = InputFrontend(ctx, self.worker.submit)
         self.health = HealthPublisher(ctx, self._counters)
@@ -36,7 +42,13 @@ class CloudListenerNode:
 
     def _process(self, raw: RawFrame) -> None:
         T = self.ctx.types
-        frame = convert(raw, self.ctx.config, self.frontend.assembler.fallback)
+        try:
+            frame = convert(raw, self.ctx.config, self.frontend.assembler.fallback)
+        except Exception as exc:  # noqa: BLE001 - bad input: the frame's ERROR certification comes from the certifier
+            reason = str(exc) if isinstance(exc, PwsError) else f"unexpected {type(exc).__name__}: {exc}"
+            self.pub_errors.publish(scheme.input_error_message(raw.stamp_ns, str(raw.header.frame_id), reason, T))
+            self.failed += 1
+            raise PwsError(f"input: {reason}") from None
         # camera_info first: the planner pairs the two by stamp
         self.pub_info.publish(msgbuild.camera_info_from_intrinsics(raw.header, frame.intrinsics, T))
         self.pub_cloud.publish(msgbuild.cloud_to_pointcloud2(raw.header, frame.cloud, T))
@@ -48,7 +60,8 @@ class CloudListenerNode:
         w = self.worker
         return {"activity": "converted", "rate_hz": w.rate.rate(), "frames_in": self.frontend.assembler.frames, "frames_processed": self.published,
                 "frames_dropped": w.slot.dropped + self.frontend.dropped, "device": "cpu", "last_error": "",
-                "warning": w.last_error, "extra": {"input_messages": self.frontend.received, "time_jumps_back": self.frontend.time_jumps}}
+                "warning": w.last_error, "extra": {"input_messages": self.frontend.received, "time_jumps_back": self.frontend.time_jumps,
+                                                "failed_inputs": self.failed}}
 
     def close(self) -> None:
         self.worker.close()

@@ -7,6 +7,10 @@ started are dropped and counted) it renders every axis and publishes, in this or
 history ``frames_qos_depth``) and ``rendered/bounds`` (Float64MultiArray), or ``rendered/errors`` when
 the axis cannot be rendered; plus a decimated ``rendered/preview`` (Image rgb8, source header).
 Wire scheme: :mod:`pws_ros.bridge.scheme`.
+
+Every axis of a plan it takes ends in its frames and bounds or in a ``rendered/errors`` message (a
+malformed ``plan/cloud``, a cloud that never came, a failed rendering), so the certifier answers every
+such frame. A malformed message is a throttled WARN naming the topic; no callback raises.
 """
 from __future__ import annotations
 
@@ -17,8 +21,8 @@ from typing import Any
 
 from ..bridge import cloudconv, msgbuild, msgconv, scheme
 from ..bridge.preview import preview_frames
-from ..core.errors import PwsError
-from ._common import HealthPublisher, Worker, stage_engine, start
+from ..core.errors import PwsError, require
+from ._common import HealthPublisher, Throttle, Worker, guarded, stage_engine, start
 
 NODE_NAME = "projector"
 CLOUD_WAIT_S = 2.0
@@ -39,16 +43,19 @@ class ProjectorNode:
         self.pub_bounds = ctx.publisher(T.Float64MultiArray, "rendered/bounds", kind="reliable", depth=max(10, cfg.output_qos_depth))
         self.pub_errors = ctx.publisher(T.String, "rendered/errors", kind="reliable", depth=max(10, cfg.output_qos_depth))
         self.pub_preview = ctx.publisher(T.Image, "rendered/preview")
+        self.throttle = Throttle()
         self.worker = Worker("pws-projector", self._process, ctx.log)
         self.subs = [
-            ctx.subscription(T.PointCloud2, "plan/cloud", self._on_cloud, kind=cfg.output_qos, depth=cfg.output_qos_depth),
-            ctx.subscription(T.String, "plan", self._on_plan, kind=cfg.output_qos, depth=cfg.output_qos_depth),
+            ctx.subscription(T.PointCloud2, "plan/cloud", guarded(ctx, self.throttle, "plan/cloud", self._on_cloud),
+                             kind=cfg.output_qos, depth=cfg.output_qos_depth),
+            ctx.subscription(T.String, "plan", guarded(ctx, self.throttle, "plan", self._on_plan), kind=cfg.output_qos,
+                             depth=cfg.output_qos_depth),
         ]
         self.health = HealthPublisher(ctx, self._counters)
 
     def _on_cloud(self, msg: Any) -> None:
+        stamp = scheme.check_stamp(msgconv.header_stamp_ns(msg), "plan/cloud")
         with self._cloud_cond:
-            stamp = msgconv.header_stamp_ns(msg)
             self.clouds.pop(stamp, None)  # a looped bag repeats stamps: the newest arrival is the newest entry
             self.clouds[stamp] = msg
             while len(self.clouds) > self.max_clouds:
@@ -56,11 +63,7 @@ class ProjectorNode:
             self._cloud_cond.notify_all()
 
     def _on_plan(self, msg: Any) -> None:
-        try:
-            bundle = scheme.parse_plan_bundle_message(msg)
-        except PwsError as exc:
-            self.ctx.log("warn", f"ignoring plan message: {exc}")
-            return
+        bundle = scheme.parse_plan_bundle_message(msg, self.ctx.config.max_partitions)
         if bundle.plans:
             self.worker.submit(bundle)
 
@@ -78,7 +81,14 @@ class ProjectorNode:
             for axis in bundle.plans:
                 self.pub_errors.publish(scheme.render_error_message(S, axis, f"no cloud with stamp {S} arrived within {CLOUD_WAIT_S:g} s", T))
             return
-        cloud, _ = cloudconv.cloud_from_pointcloud2(cloud_msg)
+        try:
+            cloud, _ = cloudconv.cloud_from_pointcloud2(cloud_msg)
+            require(len(cloud) > 0, "the cloud has no valid point")
+        except Exception as exc:  # noqa: BLE001 - a malformed plan/cloud: every axis of the frame is an ERROR
+            reason = f"malformed plan/cloud: {exc}" if isinstance(exc, PwsError) else f"plan/cloud: unexpected {type(exc).__name__}: {exc}"
+            for axis in bundle.plans:
+                self.pub_errors.publish(scheme.render_error_message(S, axis, reason, T))
+            raise PwsError(f"frame {S}: {reason}") from None
         for axis, plan in bundle.plans.items():
             if self.worker.stopping:
                 return
@@ -86,6 +96,10 @@ class ProjectorNode:
                 rendered = self.engine.render_axis(cloud, bundle.imaging or bundle.camera, plan)
             except PwsError as exc:
                 self.pub_errors.publish(scheme.render_error_message(S, axis, str(exc), T))
+                continue
+            except Exception as exc:  # noqa: BLE001 - the certifier must hear of this axis
+                self.pub_errors.publish(scheme.render_error_message(S, axis, f"internal error ({type(exc).__name__}): {exc}", T))
+                self.ctx.log("error", f"frame {S} axis {axis}: rendering failed: {type(exc).__name__}: {exc}")
                 continue
             n = len(plan.alphas)
             for i in range(n):
