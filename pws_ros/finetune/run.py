@@ -241,6 +241,9 @@ class FinetuneRun:
                 atomic_save(trainer.state(train_key, elapsed_before + time.perf_counter() - t_train), ckpt_path)
 
         last_ckpt = time.monotonic()
+        cudnn = (torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark)
+        # CUDA: deterministic cuDNN algorithms, so that a resumed run repeats the uninterrupted one bit for bit
+        torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = True, False
         try:
             while trainer.step < trainer.total:
                 with stop.section():
@@ -257,6 +260,8 @@ class FinetuneRun:
             with stop.section():
                 atomic_save(trainer.state(train_key, elapsed_before + time.perf_counter() - t_train), ckpt_path)
             raise
+        finally:
+            torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = cudnn
         self.close_bar()
         train_s = elapsed_before + time.perf_counter() - t_train
         self.log("info", f"trained in {train_s:.0f} s" + (f" ({train_s / 60:.1f} min)" if train_s > 90 else ""))
@@ -305,7 +310,7 @@ class FinetuneRun:
                  "lr": o.learning_rate, "seed": o.seed, "report": o.report_path().name}
         info["finetune"] = tuned
         tmp = work / "model_out.pt"
-        module = student.export_module()
+        module = student.export_module().cpu()   # a model file holds CPU tensors (the loaders map them to their device)
         with quiet_jit():
             if o.mode == "denoiser":
                 module = torch.jit.script(module)
@@ -317,7 +322,7 @@ class FinetuneRun:
             from ..sim.train import save_denoiser
 
             dtmp = work / "denoiser_out.pt"
-            save_denoiser(student.trainable.eval(), dtmp, sigma, teacher.input_size, meta=jsonable({"finetune": tuned}))
+            save_denoiser(student.trainable.eval().cpu(), dtmp, sigma, teacher.input_size, meta=jsonable({"finetune": tuned}))
             _move(dtmp, o.denoiser_path())
             paths.append(o.denoiser_path())
         return paths
