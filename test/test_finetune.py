@@ -216,3 +216,28 @@ def test_help_explains(capsys):
     assert exc.value.code == 0
     for words in ("teacher", "without labels", "--holdout", "--resume", "--mode", "denoiser", "report", "pws replay --model"):
         assert words in text, words
+
+
+def test_benchmark_script_runs_on_a_tiny_model(tmp_path, capsys):
+    """pws_ros.bench.finetune_bench end to end on a synthetic TUM-format sequence and a tiny model
+    (the EfficientNet-Lite0 run itself is too long for the test machine)."""
+    import torch.nn as nn
+
+    from pws_ros.bench.finetune_bench import main as bench_main
+    from pws_ros.core.model import save_model
+    from test_rgbd_sequence import tum_folder
+
+    tum_folder(tmp_path / "seq", n=5)
+    net = nn.Sequential(nn.Conv2d(3, 4, 3, 2, 1), nn.BatchNorm2d(4), nn.ReLU(), nn.AdaptiveAvgPool2d(1), nn.Flatten(), nn.Linear(4, 3))
+    model = save_model(net, tmp_path / "tiny.pt", ["a", "b", "c"], input_size=(18, 32))
+    rc = bench_main([str(tmp_path / "seq"), "--work", str(tmp_path / "work"), "--model", str(model), "--sigmas", "0.5",
+                     "--frames", "5", "--eval-samples", "8", "--epochs", "1", "--views", "1", "--holdout", "0.4",
+                     "--eval", str(tmp_path / "work" / "sequence"), "--json", "--border", "0", "--config", str(REPO / "config" / "pws.yaml")])
+    out, err = capsys.readouterr()
+    assert rc == 0, err
+    rows = json.loads(out)
+    entry = rows["sigmas"]["0.5"]
+    assert entry["heldout"]["after"]["frames"] == 2 and entry["frames"][0]["trained_on"] == 3
+    (rec,) = entry["recordings"].values()
+    assert rec["original"]["frames"] == rec["tuned"]["frames"] == 5
+    assert (tmp_path / "work" / "bench.json").is_file() and (tmp_path / "work" / "tuned_sigma0.50.pt").is_file()
