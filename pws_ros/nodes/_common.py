@@ -247,7 +247,7 @@ class InputFrontend:
                 frame = handler(msg)
             except Exception as exc:  # noqa: BLE001 - a malformed message must never end the spin
                 text = str(exc) if isinstance(exc, PwsError) else f"unexpected {type(exc).__name__}: {exc}"
-                self.throttle(self.ctx.log, "warn", f"input {topic}: {text}", key=f"input:{topic}")
+                self.throttle(self.ctx.log, "warn", f"{topic}: ignoring a message: {text}", key=f"input:{topic}")
                 return
             if frame is None and image and self.assembler.waiting_for_info:
                 self.throttle(self.ctx.log, "warn", f"input: a depth + colour pair waits for {self.assembler.waiting_for()}; "
