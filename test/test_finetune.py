@@ -131,6 +131,28 @@ def test_resume_after_interrupt_gives_the_same_weights(baseline, tmp_path):
     assert not (tmp_path / "tuned.pt.work").exists()   # removed after a finished run
 
 
+def test_interrupt_while_caching_frames_resumes_at_the_next_frame(baseline, tmp_path, monkeypatch):
+    from pws_ros.finetune import cache as ft_cache
+
+    _tmp, base, _read = baseline
+    orig, calls = ft_cache.FramePreparer._one, []
+
+    def one(self, rec, frame, rec_index):
+        calls.append(frame.index)
+        if frame.index == 3 and len(calls) == 4:
+            os.kill(os.getpid(), signal.SIGTERM)   # after frame 2 is committed, while frame 3 is rendered
+        return orig(self, rec, frame, rec_index)
+
+    monkeypatch.setattr(ft_cache.FramePreparer, "_one", one)
+    first = finetune(options(tmp_path))
+    assert first.exit_code == 143 and first.interrupted == "SIGTERM" and "caching" in first.message
+    assert len(_read_lines(tmp_path / "tuned.pt.work" / "rec000" / "frames.jsonl")) == 3   # frames 0-2 committed
+    second = finetune(options(tmp_path, resume=True))
+    assert second.exit_code == 0 and calls[4:] == [3, 4, 5, 6, 7]   # the resumed run renders from frame 3 on
+    a, b = weights(base.model_path), weights(second.model_path)
+    assert all(torch.equal(a[k], b[k]) for k in a) and second.report["after"] == base.report["after"]
+
+
 def test_another_seed_gives_other_weights(baseline, tmp_path):
     _tmp, base, _read = baseline
     other = finetune(options(tmp_path, seed=4, epochs=1))

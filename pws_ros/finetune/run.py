@@ -400,7 +400,8 @@ def summary_lines(result: FinetuneResult) -> list[str]:
     if "accuracy_vs_truth" in a:
         lines.append(f"{'accuracy (ground truth)':28s}{q(b, 'accuracy_vs_truth'):>10s}{q(a, 'accuracy_vs_truth'):>10s}")
     s, m = r["seconds"], r["memory"]
-    lines.append(f"time: frames {s['frames']:.0f} s, training {s['training']:.0f} s, total {s['total']:.0f} s; peak memory "
+    lines.append(f"time: frames {s['frames']:.0f} s, training {s['training']:.0f} s (all runs of a resumed one), this run "
+                 f"{s['total']:.0f} s; peak memory "
                  f"{m['peak_rss_mb']:.0f} MB" + (f", GPU {m['peak_cuda_mb']:.0f} MB" if "peak_cuda_mb" in m else ""))
     return lines
 
