@@ -23,7 +23,7 @@ from pws_ros.core.anchors import place_anchors, refine_plan
 from pws_ros.core.camera import CameraIntrinsics
 from pws_ros.core.cloud import Cloud, cloud_from_rgbd
 from pws_ros.core.errors import PwsError
-from pws_ros.core.imaging import SurfelRenderer, make_imaging, segment_hulls
+from pws_ros.core.imaging import UNCOVERED, SurfelRenderer, make_imaging, segment_hulls
 from pws_ros.core.partition import Plan, make_grid
 
 AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
@@ -72,7 +72,9 @@ def reference_native(points, colors, cam, axis, a, background):
 
 
 def reference_frame(points, colors, im, axis, a):
-    nat = reference_native(points, colors, im.camera, axis, a, im.background)
+    # uncovered "frame": a pixel no surfel covers shows its alpha = 0 colour (docs/imaging.md), else background
+    bg = reference_native(points, colors, im.camera, axis, 0.0, im.background) if im.uncovered == "frame" else im.background
+    nat = reference_native(points, colors, im.camera, axis, a, bg)
     k = im.factor
     h, w = im.out_shape
     out = nat.reshape(h, k, w, k, 3).mean(axis=(1, 3))
@@ -124,11 +126,11 @@ def test_alpha_zero_re_renders_the_camera_image_exactly():
 
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), axis=st.sampled_from(AXES), ties=st.booleans(),
-       border=st.sampled_from([0, 1]), background=st.sampled_from([0.0, 0.5]))
-def test_renderer_equals_the_brute_force(seed, axis, ties, border, background):
+       border=st.sampled_from([0, 1]), background=st.sampled_from([0.0, 0.5]), uncovered=st.sampled_from(UNCOVERED))
+def test_renderer_equals_the_brute_force(seed, axis, ties, border, background, uncovered):
     rng = np.random.default_rng(seed)
     cloud = random_cloud(rng, ties)
-    im = make_imaging("surfel", CAM, (3, 4), background=background, border=border)
+    im = make_imaging("surfel", CAM, (3, 4), background=background, border=border, uncovered=uncovered)
     alphas = np.concatenate([[0.0], rng.uniform(-1, 1, 2) * SCALE[axis]])
     frames = SurfelRenderer(cloud, im, axis).render_batch(alphas).numpy()
     for f, a in zip(frames, alphas):
@@ -136,13 +138,15 @@ def test_renderer_equals_the_brute_force(seed, axis, ties, border, background):
 
 
 @settings(max_examples=20, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), axis=st.sampled_from(AXES), ties=st.booleans(), nseg=st.integers(1, 4))
-def test_segment_bounds_hold_for_dense_alphas(seed, axis, ties, nseg):
+@given(seed=st.integers(0, 2**32 - 1), axis=st.sampled_from(AXES), ties=st.booleans(), nseg=st.integers(1, 4),
+       uncovered=st.sampled_from(UNCOVERED))
+def test_segment_bounds_hold_for_dense_alphas(seed, axis, ties, nseg, uncovered):
     """Every frame of a segment (brute force at its ends, their float neighbours and 12 interior poses)
-    lies inside the per-pixel bounds, so no distance bound can be exceeded."""
+    lies inside the per-pixel bounds, so no distance bound can be exceeded (disocclusions included: the
+    random clouds have holes and stray points; uncovered pixels show the background or their alpha = 0 colour)."""
     rng = np.random.default_rng(seed)
     cloud = random_cloud(rng, ties)
-    im = make_imaging("surfel", CAM, (3, 4), background=0.5, border=0)
+    im = make_imaging("surfel", CAM, (3, 4), background=0.5, border=0, uncovered=uncovered)
     b = SCALE[axis] * rng.uniform(0.2, 1.0)
     alphas = make_grid(b, b / nseg)
     hulls = segment_hulls(SurfelRenderer(cloud, im, axis), alphas)
@@ -362,8 +366,8 @@ def test_render_factor_bins_the_camera_and_keeps_the_crop():
 
 
 @settings(max_examples=15, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), axis=st.sampled_from(AXES), ties=st.booleans())
-def test_binned_rendering_and_bounds_equal_the_brute_force(seed, axis, ties):
+@given(seed=st.integers(0, 2**32 - 1), axis=st.sampled_from(AXES), ties=st.booleans(), uncovered=st.sampled_from(UNCOVERED))
+def test_binned_rendering_and_bounds_equal_the_brute_force(seed, axis, ties, uncovered):
     """render_factor 1 on a 16x12 camera and a 3x4 model: 4x4 camera pixels per output pixel, binned 2x2.
     The renderer draws the reference-binned cloud exactly, and dense poses stay inside the bounds."""
     rng = np.random.default_rng(seed)
@@ -375,7 +379,7 @@ def test_binned_rendering_and_bounds_equal_the_brute_force(seed, axis, ties):
     cloud = cloud_from_rgbd(depth, rng.random(cam.shape + (3,)).astype(np.float32), cam)
     extra = rng.uniform([-0.6, -0.5, 0.7], [0.6, 0.5, 1.8], (4, 3))  # stray points, some beyond the image
     cloud = Cloud(np.concatenate([cloud.points, extra]), np.concatenate([cloud.colors, rng.random((4, 3)).astype(np.float32)]))
-    im = make_imaging("surfel", cam, (3, 4), background=0.5, border=0, render_factor=1)
+    im = make_imaging("surfel", cam, (3, 4), background=0.5, border=0, render_factor=1, uncovered=uncovered)
     assert (im.factor, im.decimate, im.camera.width) == (1, 4, 4)
     pts, cols = reference_bins(cloud.points, cloud.colors, im.camera)
     r = SurfelRenderer(cloud, im, axis)
@@ -512,3 +516,44 @@ def test_binning_is_redone_after_an_edit_in_place():
     fresh = SurfelRenderer(Cloud(cloud.points.copy(), cloud.colors.copy()), im, "ry").render_batch([0.0, 0.01]).numpy()
     np.testing.assert_array_equal(again, fresh)
     assert not np.array_equal(again, first)
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), axis=st.sampled_from(AXES))
+def test_uncovered_frame_value_is_fixed_by_the_whole_cloud(seed, axis):
+    """uncovered "frame": the alpha = 0 colours come from the whole cloud, also for a renderer that drops
+    the surfels its alpha range cannot show (a range without 0); and a disoccluded pixel shows that
+    colour, not the background, where the background would show with uncovered "background"."""
+    rng = np.random.default_rng(seed)
+    cloud = random_cloud(rng, False)
+    im = make_imaging("surfel", CAM, (3, 4), background=0.0, border=0, uncovered="frame")
+    b = SCALE[axis]
+    alphas = rng.uniform(0.3 * b, b, 4)
+    full = SurfelRenderer(cloud, im, axis).render_batch(alphas).numpy()
+    part = SurfelRenderer(cloud, im, axis, alpha_range=(0.3 * b, b)).render_batch(alphas).numpy()
+    np.testing.assert_array_equal(full, part)
+    for f, a in zip(full, alphas):
+        np.testing.assert_allclose(f, reference_frame(cloud.points, cloud.colors, im, axis, a), atol=1e-6)
+
+
+@pytest.mark.parametrize("uncovered", UNCOVERED)
+def test_disocclusion_shows_the_uncovered_value_inside_the_bounds(uncovered):
+    """A near bar (colour 1) in front of a far wall (colour 0) that has no points behind the bar: moving
+    the camera sideways uncovers pixels no surfel covers. They show the bar's alpha = 0 colour ("frame")
+    or the background 0.5, and the bounds of segments far from 0 (where the bar's own surfels have moved
+    on) hold them."""
+    depth = np.full(CAM.shape, 2.0)
+    depth[:, 3:5] = 1.0
+    rgb = np.zeros(CAM.shape + (3,), np.float32)
+    rgb[:, 3:5] = 1.0
+    cloud = cloud_from_rgbd(depth, rgb, CAM)
+    im = make_imaging("surfel", CAM, (3, 4), background=0.5, border=0, uncovered=uncovered)
+    r = SurfelRenderer(cloud, im, "tx")
+    alphas = np.linspace(0.2, 0.3, 3)
+    native = r.render_native(alphas).numpy()
+    assert np.any(np.all(native == (1.0 if uncovered == "frame" else 0.5), axis=-1)[:, :, :5])   # a disoccluded pixel
+    hulls = segment_hulls(r, alphas)
+    for i in range(len(alphas) - 1):
+        for a in np.linspace(alphas[i], alphas[i + 1], 9):
+            f = reference_frame(cloud.points, cloud.colors, im, "tx", a)
+            assert np.all(f >= hulls.lo[i] - 1e-7) and np.all(f <= hulls.hi[i] + 1e-7), (i, a)

@@ -114,6 +114,13 @@ def test_realsense_replay_registers_and_certifies(realsense, model_path, tmp_pat
     (rec,) = res.records
     assert rec.input_error is None or rec.input_error == ""
     assert [c.status for c in rec.certificates] != ["error"]
+    # every certificate says how many points of its cloud have a filled depth (depth_fill: row), and the
+    # certification message carries it
+    assert all(0 < c.filled_points < 0.1 * 640 * 480 for c in rec.certificates)
+    with BagReader(tmp_path / "out") as bag:
+        diag = bag.deserialize(next(iter(bag.messages(["/certification"]))))
+    values = {kv.key: kv.value for kv in diag.status[0].values}
+    assert values["filled_points"] == str(rec.certificates[0].filled_points)
     # the pair is 101.6 ms apart (the recording's only colour frame, its nearest depth frame): one WARN says so
     skew = [msg for lv, msg in logs if "101.6 ms apart" in msg]
     assert len(skew) == 1 and "sync_max_skew_s" in skew[0]

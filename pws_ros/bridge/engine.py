@@ -171,7 +171,7 @@ class FrameCertifier:
                 self.log("warn", f"camera {intr.width}x{intr.height} is rendered at {size[1]}x{size[0]}: the aspect ratio changes "
                                  f"(fx and fy are scaled differently; imaging: surfel crops instead)")
         im = make_imaging(c.imaging, intr, size, background=c.background, border=c.border, cloud=cloud, radii=c.radii,
-                          render_factor=c.render_factor)
+                          render_factor=c.render_factor, uncovered=c.uncovered)
         if im.kind == "surfel" and not self._imaging_described:
             self._imaging_described = True
             from ..core.certify import grid_cap, segment_bytes
@@ -399,6 +399,7 @@ class FrameCertifier:
                 else:
                     cert = self.certify_axis(cloud, imaging, axis, dense_cloud, preview_every, previews, plans,
                                              stamp_ns=int(stamp_ns))
+                    cert.filled_points = int(cloud.filled)   # the statement is about the cloud with filled depth
                     if audit and cert.status != "error" and axis in plans:
                         audit_certificate(cert, self.source_cloud(cloud, dense_cloud), imaging, plans[axis], device=self.device,
                                           num_anchors=self.config.num_anchors, audit_poses=self.config.audit_poses, log=self.log)

@@ -17,7 +17,7 @@ from ..core.errors import PwsError, require
 from ..core.motion import AXES, PAPER_RADIUS, UNITS
 
 from ..core.certify import COVERAGES, METHODS  # the certification core owns these lists
-from ..core.imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS
+from ..core.imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, UNCOVERED
 from ..core.partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX
 
 INPUT_MODES = ("auto", "pointcloud2", "rgbd")
@@ -109,7 +109,12 @@ PARAMS: tuple[ParamSpec, ...] = (
               "plans only a few frames, e.g. sub-pixel motions); 0 = as planned", range=(0, 1_000_000), nodes=_PLAN),
     ParamSpec("dense_cloud_path", "", "prior dense cloud (.npz with points, colors in the camera optical frame) for method pws; empty otherwise",
               read_only=True, nodes=_PLAN),
-    ParamSpec("background", 0.0, "pixel value where no point is drawn (invalid depth, disocclusions, the masked border)", range=(0.0, 1.0), nodes=_PLAN),
+    ParamSpec("background", 0.0, "pixel value of the masked border, and where no point is drawn (paper imaging; surfel "
+              "imaging with uncovered: background)", range=(0.0, 1.0), nodes=_PLAN),
+    ParamSpec("uncovered", "frame", "surfel imaging: what a pixel that no surfel covers shows (a disocclusion, what the "
+              "recording never saw): frame = the colour the alpha = 0 frame has at that pixel, fixed for the whole motion "
+              "(the least spurious contrast; background where nothing covers it at alpha = 0 either); background = the "
+              "background value", choices=UNCOVERED, nodes=_PLAN),
     ParamSpec("render_width", 0, "paper imaging: rendered frame width; 0 = the model's declared input size (else the camera's)", range=(0, 8192), read_only=True, nodes=_PLAN, unit="px"),
     ParamSpec("render_height", 0, "paper imaging: rendered frame height; 0 = the model's declared input size (else the camera's)", range=(0, 8192), read_only=True, nodes=_PLAN, unit="px"),
     # -- smoothing and statistics --

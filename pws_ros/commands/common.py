@@ -13,7 +13,7 @@ from ..core.certify import COVERAGES, CertifyConfig
 from ..core.cloud import Cloud
 from ..core.errors import PwsError, require
 from ..core.motion import AXES
-from ..core.imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS
+from ..core.imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, UNCOVERED
 from ..core.partition import DEFAULT_DELTA_PX, DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, PLAN_METHODS
 
 
@@ -123,13 +123,20 @@ def add_smoothing_args(p: argparse.ArgumentParser) -> None:
                    help=f"anchors for --coverage anchors; with surfel imaging the most anchors placed from the distance "
                         f"bounds, a budget of n0 + ANCHORS * n classifier calls (default {d.num_anchors})")
     p.add_argument("--cms-sigma", type=positive_float, default=None, help="CMS motion-space sigma (default per axis, REFERENCE.md)")
-    p.add_argument("--background", type=float, default=0.0, help="value of empty pixels (default 0.0)")
+    p.add_argument("--background", type=float, default=0.0, help="value of the masked border and of empty pixels (default 0.0)")
+    add_uncovered_arg(p)
+
+
+def add_uncovered_arg(p) -> None:
+    p.add_argument("--uncovered", choices=UNCOVERED, default="frame",
+                   help="surfel imaging: what a pixel no surfel covers shows: frame = its colour in the alpha = 0 frame "
+                        "(default), background = --background")
 
 
 def config_from_args(args) -> CertifyConfig:
     return CertifyConfig(sigma=args.sigma, n0=args.n0, n=args.n, alpha=args.alpha, seed=args.seed, device=args.device,
                          batch_size=args.batch_size, coverage=args.coverage, num_anchors=args.num_anchors,
-                         background=args.background, max_partitions=args.max_partitions,
+                         background=args.background, uncovered=args.uncovered, max_partitions=args.max_partitions,
                          min_partitions=args.min_partitions, delta=args.delta,
                          cms_sigma=args.cms_sigma, imaging=getattr(args, "imaging", "surfel"),
                          border=getattr(args, "border", -1), step_px=getattr(args, "step_px", DEFAULT_STEP_PX),

@@ -7,7 +7,7 @@ from ..core.bounds import render_plan
 from ..core.errors import require
 from ..core.imaging import IMAGING_KINDS, make_imaging, render_plan_surfel
 from ..core.partition import Plan
-from .common import add_imaging_size_arg, add_render_factor_arg, add_scene_args, emit, load_scene
+from .common import add_imaging_size_arg, add_render_factor_arg, add_scene_args, add_uncovered_arg, emit, load_scene
 
 
 def register(sub) -> None:
@@ -17,7 +17,8 @@ def register(sub) -> None:
                                    "for every alpha in segment i, |x(alpha)-x_i|^2 + |x(alpha)-x_{i+1}|^2 <= pair_bound_sq[i].")
     add_scene_args(p, radius=False)
     p.add_argument("--plan", required=True, metavar="PLAN.json", help="plan written by `pws plan --out`")
-    p.add_argument("--background", type=float, default=0.0, help="value of empty pixels (default 0.0)")
+    p.add_argument("--background", type=float, default=0.0, help="value of the masked border and of empty pixels (default 0.0)")
+    add_uncovered_arg(p)
     p.add_argument("--imaging", choices=IMAGING_KINDS, default="surfel", help="imaging model (default surfel; see `pws certify --help`)")
     p.add_argument("--border", type=int, default=-1, metavar="PX", help="surfel imaging: masked border in output pixels (-1 = from the plan's radius)")
     add_render_factor_arg(p)
@@ -33,7 +34,7 @@ def run(args) -> int:
     plan = Plan.load(args.plan)
     require(plan.axis == args.axis, f"--axis {args.axis} differs from the plan's axis {plan.axis}")
     im = make_imaging(args.imaging, intr, args.size, background=args.background, border=args.border, cloud=cloud,
-                      radii={plan.axis: plan.radius}, render_factor=args.render_factor)
+                      radii={plan.axis: plan.radius}, render_factor=args.render_factor, uncovered=args.uncovered)
     if im.kind == "surfel":
         rp = render_plan_surfel(cloud, im, plan, device=args.device)
     else:

@@ -36,7 +36,7 @@ from .bounds import SegmentValues
 from .camera import CameraIntrinsics
 from .cloud import Cloud
 from .errors import require
-from .imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, HullValues, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, hulls_within, segment_bounds
+from .imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, UNCOVERED, HullValues, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, hulls_within, segment_bounds
 from .model import LoadedModel
 from .coverage import (COVERAGES, FRONTIER_PARTS, FRONTIER_ROUNDS, AdaptiveAnchorsRule, cohen_radii, coverage_rule, frontier_reach,
                        packing_bound, segment_covers)
@@ -60,6 +60,7 @@ class CertifyConfig:
     coverage: str = "anchors"
     num_anchors: int = 24
     background: float = 0.0
+    uncovered: str = "frame"   # surfel: what a pixel no surfel covers shows (core.imaging.UNCOVERED)
     max_partitions: int = DEFAULT_FRAME_BUDGET
     max_memory_mb: float = 2048.0
     min_partitions: int = 0
@@ -80,6 +81,7 @@ class CertifyConfig:
         require(int(self.batch_size) >= 1, f"batch_size must be >= 1, got {self.batch_size}")
         require(int(self.min_partitions) >= 0, f"min_partitions must be >= 0, got {self.min_partitions}")
         require(math.isfinite(self.background), f"background must be finite, got {self.background}")
+        require(self.uncovered in UNCOVERED, f"unknown uncovered rule {self.uncovered!r}: expected one of {', '.join(UNCOVERED)}")
         require(self.imaging in IMAGING_KINDS, f"unknown imaging model {self.imaging!r}: expected one of {', '.join(IMAGING_KINDS)}")
         require(math.isfinite(self.step_px) and self.step_px > 0, f"step_px must be positive, got {self.step_px}")
         require(int(self.render_factor) >= 0, f"render_factor must be >= 0 (0: the camera's resolution), got {self.render_factor}")
@@ -115,7 +117,8 @@ def imaging_for(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, config
                 radii: dict[str, float]) -> Imaging:
     """The imaging of ``config`` for camera ``intr`` and ``model``'s input size (border from ``radii``)."""
     return make_imaging(config.imaging, intr, getattr(model, "input_size", None), background=config.background,
-                        border=int(config.border), cloud=cloud, radii=radii, render_factor=int(config.render_factor))
+                        border=int(config.border), cloud=cloud, radii=radii, render_factor=int(config.render_factor),
+                        uncovered=config.uncovered)
 
 
 def certify(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, axis: str, radius: float, method: str = "pws_of",

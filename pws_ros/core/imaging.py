@@ -68,6 +68,7 @@ from .partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, Plan, plan_partiti
 from .render import DEFAULT_MAX_ELEMENTS, resolve_device
 
 IMAGING_KINDS = ("surfel", "paper")
+UNCOVERED = ("frame", "background")   # what a native pixel no surfel covers shows (surfel imaging; see Imaging)
 SURFEL_OVERLAP = 0.15   # px each side: see the module doc (neighbours overlap by more than a segment moves)
 SAMPLE_JITTER = 0.33    # px: largest offset of a pixel's sample point from its centre (< 1/2 - SURFEL_OVERLAP)
 EDGE_EPS = 1e-6         # px: float tolerance of a footprint edge in the bounds
@@ -92,6 +93,9 @@ class Imaging:
     source: CameraIntrinsics | None = field(default=None, compare=False)  # not sent between nodes
     crop: tuple[int, int] = (0, 0)
     decimate: int = 1   # surfel: input pixels per rendered pixel (a side); the cloud is binned to match
+    # surfel: what a native pixel that no surfel covers shows: "frame" = its colour in the alpha = 0 frame
+    # (``background`` where no surfel covers it there either), fixed for the whole motion; "background"
+    uncovered: str = "background"
 
     @property
     def out_shape(self) -> tuple[int, int]:
@@ -105,19 +109,23 @@ class Imaging:
         src = self.source or self.camera
         s = self.decimate
         binned = "" if s == 1 else (f", cloud binned {s}x{s} and rendered at {self.camera.width}x{self.camera.height}")
+        uncovered = (f"uncovered = the alpha = 0 frame (else {self.background:g})" if self.uncovered == "frame"
+                     else f"uncovered = {self.background:g}")
         return (f"surfel imaging: {src.width}x{src.height} camera, centred crop {s * self.camera.width}x{s * self.camera.height} "
                 f"at ({self.crop[0]}, {self.crop[1]}){binned}, {self.factor}x{self.factor} block mean to {w}x{h}, border "
-                f"{self.border[0]} col / {self.border[1]} row masked, uncovered = {self.background:g}")
+                f"{self.border[0]} col / {self.border[1]} row masked (= {self.background:g}), {uncovered}")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], camera: CameraIntrinsics) -> "Imaging":
         """The inverse of :meth:`to_dict` given the native ``camera`` (e.g. what crossed a topic)."""
         try:
             im = cls(str(d["kind"]), camera, int(d["factor"]), (int(d["border_cols"]), int(d["border_rows"])),
-                     float(d["background"]), None, (int(d["crop_x0"]), int(d["crop_y0"])), int(d.get("decimate", 1)))
+                     float(d["background"]), None, (int(d["crop_x0"]), int(d["crop_y0"])), int(d.get("decimate", 1)),
+                     str(d.get("uncovered", "background")))
         except (KeyError, TypeError, ValueError) as exc:
             raise PwsError(f"malformed imaging description: {exc}") from None
-        require(im.kind in IMAGING_KINDS and im.factor >= 1 and im.decimate >= 1, f"malformed imaging description: {d}")
+        require(im.kind in IMAGING_KINDS and im.factor >= 1 and im.decimate >= 1 and im.uncovered in UNCOVERED,
+                f"malformed imaging description: {d}")
         require(camera.width % im.factor == 0 and camera.height % im.factor == 0,
                 f"imaging factor {im.factor} does not divide the camera {camera.width}x{camera.height}")
         return im
@@ -126,19 +134,21 @@ class Imaging:
         return {"kind": self.kind, "factor": self.factor, "border_cols": self.border[0], "border_rows": self.border[1],
                 "crop_x0": self.crop[0], "crop_y0": self.crop[1], "native_width": self.camera.width,
                 "native_height": self.camera.height, "width": self.out_shape[1], "height": self.out_shape[0],
-                "background": self.background, "decimate": self.decimate}
+                "background": self.background, "decimate": self.decimate, "uncovered": self.uncovered}
 
 
 def make_imaging(kind: str, intr: CameraIntrinsics, model_size: tuple[int, int] | None, *, background: float = 0.0,
                  border: int = -1, cloud: Cloud | None = None, radii: dict[str, float] | None = None,
-                 render_factor: int = 0) -> Imaging:
+                 render_factor: int = 0, uncovered: str = "background") -> Imaging:
     """The imaging of camera ``intr`` for a classifier of input ``model_size`` = (H, W) (None: any size).
 
     ``border`` < 0 computes it from ``cloud`` and the motion ``radii`` ({axis: b}) of the frame
     (:func:`auto_border`); 0 masks nothing. ``render_factor`` (surfel): frames are rendered at that many
     times the classifier's input (0: the camera's own resolution, the largest factor that fits); a
-    smaller factor bins the camera's pixels ``decimate x decimate`` (see :func:`bin_cloud`)."""
+    smaller factor bins the camera's pixels ``decimate x decimate`` (see :func:`bin_cloud`). ``uncovered``
+    (surfel): what a native pixel no surfel covers shows (:data:`UNCOVERED`, see :class:`Imaging`)."""
     require(kind in IMAGING_KINDS, f"unknown imaging model {kind!r}: expected one of {', '.join(IMAGING_KINDS)}")
+    require(uncovered in UNCOVERED, f"unknown uncovered rule {uncovered!r}: expected one of {', '.join(UNCOVERED)}")
     require(math.isfinite(background), f"background must be finite, got {background}")
     h, w = (intr.height, intr.width) if model_size is None else (int(model_size[0]), int(model_size[1]))
     if kind == "paper":
@@ -154,7 +164,7 @@ def make_imaging(kind: str, intr: CameraIntrinsics, model_size: tuple[int, int] 
     cam = replace(intr, width=s * k * w, height=s * k * h, cx=intr.cx - x0, cy=intr.cy - y0)
     if s > 1:
         cam = cam.scaled(k * w, k * h)
-    im = Imaging("surfel", cam, k, (0, 0), float(background), intr, (x0, y0), s)
+    im = Imaging("surfel", cam, k, (0, 0), float(background), intr, (x0, y0), s, uncovered)
     if border < 0:
         bx, by = auto_border(im, cloud, radii or {}) if cloud is not None else (0, 0)
     else:
@@ -210,6 +220,13 @@ class SurfelRenderer:
         self.max_elements = int(max_elements)
         self.samples = SamplePoints(self.intr.height, self.intr.width, self.device)
         self._set_points(*bin_cloud(np.asarray(cloud.points, dtype=np.float64), np.asarray(cloud.colors, np.float32), imaging))
+        # what each native pixel shows where no surfel covers it (imaging.uncovered), from the whole cloud,
+        # fixed for the whole motion: the renderer and the bounds read this one table
+        HW = self.intr.height * self.intr.width
+        if imaging.uncovered == "frame":
+            self.uncovered = self.colors[self._winners(_alphas([0.0], self.device))].reshape(HW, 3).clone()
+        else:
+            self.uncovered = self.colors[self.num_points].expand(HW, 3).clone()
         if alpha_range is not None:
             # drop the surfels no pose of the range can show (in order: the tie rule is unchanged)
             keep = _HullSweep(self, *alpha_range).maybe_visible(*alpha_range)
@@ -256,17 +273,22 @@ class SurfelRenderer:
         idx.scatter_reduce_(0, where, self.rank[p_i], reduce="amin", include_self=True)
         return self.by_rank[idx].view(B, H, W)
 
+    def _shade(self, winners: torch.Tensor) -> torch.Tensor:
+        """The colours (B, Hn, Wn, 3) of winner indices (``num_points``: the pixel's uncovered value)."""
+        H, W = self.intr.height, self.intr.width
+        return torch.where((winners == self.num_points)[..., None], self.uncovered.view(H, W, 3), self.colors[winners])
+
     def render_native(self, alphas) -> torch.Tensor:
         """Native-resolution frames (B, Hn, Wn, 3) float32, before reduction and border."""
         a = _alphas(alphas, self.device)
-        return torch.cat([self.colors[self._winners(a[s:s + self.chunk_size])]
+        return torch.cat([self._shade(self._winners(a[s:s + self.chunk_size]))
                           for s in range(0, len(a), self.chunk_size)]) if len(a) else \
             torch.empty((0, self.intr.height, self.intr.width, 3), dtype=torch.float32, device=self.device)
 
     def render_batch(self, alphas) -> torch.Tensor:
         """Frames ``(B, H, W, 3)`` float32 as handed to the noise (reduced, border masked)."""
         a = _alphas(alphas, self.device)
-        out = [reduce_frames(self.colors[self._winners(a[s:s + self.chunk_size])], self.imaging)
+        out = [reduce_frames(self._shade(self._winners(a[s:s + self.chunk_size])), self.imaging)
                for s in range(0, len(a), self.chunk_size)]
         if not out:
             h, w = self.imaging.out_shape
@@ -751,12 +773,13 @@ class _HullSweep:
         rc = r.rank[cp]
         keep = rc <= sure_first[q]
         cp, q = cp[keep], q[keep]
-        # the values of the native pixels: the renderer's own float32 colours (its background row included),
-        # their least and greatest per channel exactly
+        # the values of the native pixels: the renderer's own float32 colours (and its uncovered value of
+        # each pixel where no surfel surely covers it), their least and greatest per channel exactly
         col = r.colors
         open_ = (sure_first == P)[:, None]
-        lo = torch.where(open_, col[P], torch.tensor(float("inf"), dtype=col.dtype, device=dev))
-        hi = torch.where(open_, col[P], torch.tensor(float("-inf"), dtype=col.dtype, device=dev))
+        uncovered = r.uncovered.repeat(B, 1)                                               # (B HW, 3)
+        lo = torch.where(open_, uncovered, torch.tensor(float("inf"), dtype=col.dtype, device=dev))
+        hi = torch.where(open_, uncovered, torch.tensor(float("-inf"), dtype=col.dtype, device=dev))
         if len(cp):
             idx = q[:, None].expand(-1, 3)
             vals = col[cp]
@@ -803,6 +826,6 @@ def _block_mean64(x: torch.Tensor, im: Imaging) -> torch.Tensor:
     return out
 
 
-__all__ = ["AXES", "DEFAULT_RENDER_FACTOR", "EDGE_EPS", "HullValues", "IMAGING_KINDS", "Imaging", "SURFEL_OVERLAP",
+__all__ = ["AXES", "DEFAULT_RENDER_FACTOR", "EDGE_EPS", "HullValues", "IMAGING_KINDS", "Imaging", "SURFEL_OVERLAP", "UNCOVERED",
            "SurfelRenderer", "auto_border", "bin_cloud", "make_imaging", "make_renderer", "occlusion_key", "plan_for", "reduce_frames",
            "render_plan_surfel", "hulls_within", "segment_bounds", "segment_hulls", "surfel_corners"]

@@ -48,6 +48,7 @@ class Certificate:
     reason: str = ""
     seed: int | None = None
     imaging: str = ""                 # surfel | paper (core.imaging): what the certified frames are
+    filled_points: int = 0            # points of the one-frame cloud whose depth was filled (depth_fill), not measured
     frame_alpha: float | None = None  # risk of the whole frame's statement (all its axes together)
 
     @property
