@@ -257,7 +257,9 @@ def test_four_process_points_near_zero_give_a_weak_frame_a_radius(model_path, sm
     first = min(grid[c + 5], -grid[c - 5])   # the first grid points beyond the 4 added a side
     assert bundle.plans["ry"].details["near_centre_points"] == 8
     assert b.bounds["frontier_splits"] > 0 and 0 < b.radius < first       # the case this test is about
-    assert 0 < a.radius < first and a.radius <= b.radius and a.p_a_lower == b.p_a_lower
+    # the pipeline refines its grid for the (small) target of this frame in REFINE_ROUNDS rounds, the planner for
+    # the largest target: their anchors differ here, and the pipeline's radius is the larger
+    assert 0 < a.radius < first and a.radius <= b.radius
     assert a.radius in set(np.abs(grid))
 
 
