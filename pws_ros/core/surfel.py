@@ -1,0 +1,370 @@
+"""The surfel renderer: the frames of the surfel imaging model for any motion (docs/imaging.md,
+sections 4 to 7; the whole model: docs/imaging.md and :mod:`.imaging`).
+
+Every point of the one-frame cloud stands for the surface patch its depth pixel saw: a fronto-parallel
+square *surfel* centred on the point, of half side ``(1/2 + SURFEL_OVERLAP) Z / fx`` by
+``(1/2 + SURFEL_OVERLAP) Z / fy`` (``Z`` its depth in the recorded frame, ``fx, fy`` the rendered camera,
+:func:`surfel_corners`). At motion ``alpha`` its *footprint* is the axis-aligned bounding box
+``[umin, umax) x [vmin, vmax)`` of the projections of its four corners (pixel-edge coordinates,
+:func:`.motion.project`); it covers native pixel ``(r, c)`` when the pixel's sample point (its centre
+``(c + 1/2, r + 1/2)`` moved by a fixed offset of at most ``SAMPLE_JITTER``, :class:`SamplePoints`) lies
+inside (:func:`covered_pairs`). A surfel with a corner or its centre at depth ``<= 0`` is not drawn. The
+pixel shows the covering surfel nearest to the *recorded* camera centre (the least :func:`occlusion_key`
+``X^2 + Y^2 + Z^2``, float64; equal keys: the lower point index), or its uncovered value where none covers
+it (invalid depth, disocclusions, what the recording never saw: ``Imaging.uncovered``). The order is fixed
+for the whole motion: for rotations it is exactly the occlusion order along every ray (a rotation about
+the optical centre has no parallax); for the translations of a certificate (millimetres) it can differ
+from the moved camera's only between surfaces closer together along a ray than the translation. It also
+keeps neighbours of one surface, whose patches overlap, from trading places as the camera turns
+(ordering by the moved depth made every overlap of a slanted plane flip at one pose, a jump of the whole
+image). At ``alpha = 0`` a cloud back-projected from the camera's own depth image re-renders that image
+exactly (every surfel covers its own pixel); neighbours at equal depth overlap by ``SURFEL_OVERLAP``
+pixels, so moving the camera opens no sampling holes, only true disocclusions.
+
+Below the camera's resolution the cloud is first binned (:func:`bin_cloud`); frames are reduced to the
+classifier's input by :func:`.framing.reduce_frames`. :class:`FootprintSweep` is where the footprints can
+be over a range of motion, shared with the bounds (:mod:`.surfel_bounds`).
+"""
+from __future__ import annotations
+
+import zlib
+from typing import Iterator
+
+import numpy as np
+import torch
+
+from .camera import CameraIntrinsics
+from .cloud import Cloud
+from .errors import require
+from .framing import SAMPLE_JITTER, SURFEL_OVERLAP, Imaging, reduce_frames
+from .motion import depth, parse_axis, project, split_events
+from .render import DEFAULT_MAX_ELEMENTS, resolve_device
+
+_CORNER_SIGNS = ((-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0))
+
+
+class SurfelRenderer:
+    """Renders frames of the surfel model for batches of motion values (torch, float64 geometry).
+
+    Same interface as :class:`.render.Renderer`: ``render_batch(alphas)`` and ``iter_frames``; frames are
+    ``(B, H, W, 3)`` float32 at the classifier's input size (the reduced, border-masked image). With
+    ``alpha_range``, surfels that no motion in that range can bring into the image are left out at once
+    (only motions inside the range may then be rendered)."""
+
+    def __init__(self, cloud: Cloud, imaging: Imaging, axis: str, *, device: str | torch.device | None = "cpu",
+                 max_elements: int = DEFAULT_MAX_ELEMENTS, alpha_range: tuple[float, float] | None = None):
+        require(imaging.kind == "surfel", "SurfelRenderer needs surfel imaging")
+        self.axis = parse_axis(axis)
+        self.imaging = imaging
+        self.intr = imaging.camera
+        self.background = float(imaging.background)
+        self.device = resolve_device(device)
+        self.max_elements = int(max_elements)
+        self.samples = SamplePoints(self.intr.height, self.intr.width, self.device)
+        self._set_points(*bin_cloud(np.asarray(cloud.points, dtype=np.float64), np.asarray(cloud.colors, np.float32), imaging))
+        # what each native pixel shows where no surfel covers it (imaging.uncovered), from the whole cloud,
+        # fixed for the whole motion: the renderer and the bounds read this one table
+        HW = self.intr.height * self.intr.width
+        if imaging.uncovered == "frame":
+            self.uncovered = self.colors[self._winners(_alphas([0.0], self.device))].reshape(HW, 3).clone()
+        else:
+            self.uncovered = self.colors[self.num_points].expand(HW, 3).clone()
+        if alpha_range is not None:
+            # drop the surfels no pose of the range can show (in order: the tie rule is unchanged)
+            keep = FootprintSweep(self, *alpha_range).maybe_visible(*alpha_range)
+            if not keep.all():
+                self._set_points(self.points_np[keep], self.colors_np[keep])
+
+    def _set_points(self, pts: np.ndarray, colors: np.ndarray) -> None:
+        self.num_points = len(pts)
+        # the occlusion order as ranks (occlusion_key, then the index: a stable sort): surfel i hides surfel j
+        # wherever both cover a pixel iff rank[i] < rank[j]; the renderer and the bounds compare ranks only
+        order = np.argsort(occlusion_key(pts), kind="stable")
+        rank = np.empty(len(pts), np.int64)
+        rank[order] = np.arange(len(pts))
+        self.rank = torch.as_tensor(rank, device=self.device)
+        self.by_rank = torch.as_tensor(np.append(order, len(pts)), device=self.device)  # rank -> index, P -> P
+        self.points_np, self.colors_np = pts, colors
+        self.corners_np = surfel_corners(pts, self.intr)                     # (4, P, 3)
+        self.points = torch.as_tensor(pts, device=self.device)
+        self.corners = torch.as_tensor(self.corners_np, device=self.device)
+        bg = np.full((1, 3), self.background, dtype=np.float32)
+        self.colors = torch.as_tensor(np.concatenate([colors, bg]), device=self.device)
+
+    @property
+    def chunk_size(self) -> int:
+        return max(1, self.max_elements // max(1, 4 * self.num_points))
+
+    def footprints(self, alphas: torch.Tensor):
+        """Footprint boxes ``umin, umax, vmin, vmax``, centre depth and drawn mask, each (B, P)."""
+        u, v, d = project(self.corners[None], self.intr, self.axis, alphas[:, None, None], xp=torch)  # (B, 4, P)
+        zc = depth(self.points[None], self.axis, alphas[:, None], xp=torch)                          # (B, P)
+        drawn = (d > 0).all(dim=1) & (zc > 0)
+        return u.amin(1), u.amax(1), v.amin(1), v.amax(1), zc, drawn
+
+    def _winners(self, alphas: torch.Tensor) -> torch.Tensor:
+        """Index of the surfel each native pixel shows (``num_points`` = background), (B, Hn, Wn)."""
+        H, W = self.intr.height, self.intr.width
+        B, n = alphas.shape[0], self.num_points
+        idx = torch.full((B * H * W,), n, dtype=torch.long, device=self.device)
+        if n == 0:
+            return idx.view(B, H, W)
+        umin, umax, vmin, vmax, zc, drawn = self.footprints(alphas)
+        p_i, where, _ = covered_pairs(umin, umax, vmin, vmax, drawn, self.samples, 0.0)
+        # the covering surfel first in occlusion order (the least rank, see _set_points)
+        idx.scatter_reduce_(0, where, self.rank[p_i], reduce="amin", include_self=True)
+        return self.by_rank[idx].view(B, H, W)
+
+    def _shade(self, winners: torch.Tensor) -> torch.Tensor:
+        """The colours (B, Hn, Wn, 3) of winner indices (``num_points``: the pixel's uncovered value)."""
+        H, W = self.intr.height, self.intr.width
+        return torch.where((winners == self.num_points)[..., None], self.uncovered.view(H, W, 3), self.colors[winners])
+
+    def render_native(self, alphas) -> torch.Tensor:
+        """Native-resolution frames (B, Hn, Wn, 3) float32, before reduction and border."""
+        a = _alphas(alphas, self.device)
+        return torch.cat([self._shade(self._winners(a[s:s + self.chunk_size]))
+                          for s in range(0, len(a), self.chunk_size)]) if len(a) else \
+            torch.empty((0, self.intr.height, self.intr.width, 3), dtype=torch.float32, device=self.device)
+
+    def render_batch(self, alphas) -> torch.Tensor:
+        """Frames ``(B, H, W, 3)`` float32 as handed to the noise (reduced, border masked)."""
+        a = _alphas(alphas, self.device)
+        out = [reduce_frames(self._shade(self._winners(a[s:s + self.chunk_size])), self.imaging)
+               for s in range(0, len(a), self.chunk_size)]
+        if not out:
+            h, w = self.imaging.out_shape
+            return torch.empty((0, h, w, 3), dtype=torch.float32, device=self.device)
+        return torch.cat(out)
+
+    def iter_frames(self, alphas, chunk: int | None = None) -> Iterator[tuple[int, torch.Tensor]]:
+        alphas = np.asarray(alphas, dtype=np.float64).reshape(-1)
+        step = int(chunk or max(1, min(64, self.chunk_size)))
+        for s in range(0, len(alphas), step):
+            yield s, self.render_batch(alphas[s:s + step])
+
+
+def occlusion_key(points: np.ndarray) -> np.ndarray:
+    """What orders overlapping surfels (the smaller wins; equal: the lower index): the squared distance
+    ``X^2 + Y^2 + Z^2`` of the point from the recorded camera centre, float64, fixed for the whole motion."""
+    p = np.asarray(points, dtype=np.float64)
+    return p[:, 0] * p[:, 0] + p[:, 1] * p[:, 1] + p[:, 2] * p[:, 2]
+
+
+def bin_cloud(points: np.ndarray, colors: np.ndarray, imaging: Imaging) -> tuple[np.ndarray, np.ndarray]:
+    """The cloud the surfels are made of when frames are rendered below the camera's resolution
+    (``imaging.decimate`` = s > 1): the points in front of the camera are binned by the rendered pixel
+    their ``alpha = 0`` projection falls in (``floor`` of the pixel-edge coordinates, bins beyond the image
+    included, since motion can bring them in); each bin becomes one point on the ray through its pixel
+    centre at the depth of its nearest point (equal depths: the lower index), with the mean colour of the
+    bin (float64, then float32). A camera's own ``s x s`` pixel block thus becomes one surfel, and the
+    ``alpha = 0`` frame is the block mean of the valid pixels' colours. Order: bins row by row.
+    ``s = 1`` returns the cloud unchanged."""
+    s = int(imaging.decimate)
+    if s == 1:
+        return points, colors
+    cam = imaging.camera
+    # the plan and the renderer of every axis of a frame bin the same cloud: the latest result is kept
+    # (one entry, for the same array objects with the same contents (CRC-32 of their bytes: an edit in
+    # place is a new cloud) and the same camera; the result is shared, never modified)
+    points, colors = np.ascontiguousarray(points), np.ascontiguousarray(colors)
+    key = (cam, s, points.shape, points.dtype.str, colors.dtype.str, zlib.crc32(memoryview(points).cast("B")),
+           zlib.crc32(memoryview(colors).cast("B")))
+    for p_, c_, k_, out_ in _LAST_BINS:
+        if p_ is points and c_ is colors and k_ == key:
+            return out_
+    out_ = _bin(points, colors, cam)
+    _LAST_BINS[:] = [(points, colors, key, out_)]
+    return out_
+
+
+_LAST_BINS: list = []
+
+
+def _bin(points: np.ndarray, colors: np.ndarray, cam: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
+    front = points[:, 2] > 0
+    pts, cols = points[front], colors[front]
+    if not len(pts):
+        return pts, cols
+    u, v, _ = project(pts, cam, "tx", 0.0)
+    col, row = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+    order = np.lexsort((pts[:, 2], col, row))            # by row, column, then nearest first (stable)
+    r_s, c_s = row[order], col[order]
+    start = np.flatnonzero(np.r_[True, (r_s[1:] != r_s[:-1]) | (c_s[1:] != c_s[:-1])])
+    count = np.diff(np.r_[start, len(order)])
+    z = pts[order[start], 2]
+    rr, cc = r_s[start].astype(np.float64), c_s[start].astype(np.float64)
+    out = np.stack([(cc - cam.cx) * z / cam.fx, (rr - cam.cy) * z / cam.fy, z], axis=1)  # u = cc + 1/2 at alpha 0
+    mean = np.add.reduceat(cols[order].astype(np.float64), start, axis=0) / count[:, None]
+    return out, mean.astype(np.float32)
+
+
+def surfel_corners(points: np.ndarray, intr: CameraIntrinsics) -> np.ndarray:
+    """The four corners ``(4, P, 3)`` of every surfel (see the module doc); a point at depth <= 0 has a
+    surfel of size 0."""
+    z = np.maximum(points[:, 2], 0.0)
+    hx = (0.5 + SURFEL_OVERLAP) * z / intr.fx
+    hy = (0.5 + SURFEL_OVERLAP) * z / intr.fy
+    out = np.repeat(points[None], 4, axis=0).copy()
+    for k, (sx, sy) in enumerate(_CORNER_SIGNS):
+        out[k, :, 0] += sx * hx
+        out[k, :, 1] += sy * hy
+    return out
+
+
+def _alphas(alphas, device) -> torch.Tensor:
+    a = torch.as_tensor(np.asarray(alphas, dtype=np.float64), device=device).reshape(-1)
+    require(bool(torch.all(torch.isfinite(a))), "motion values must be finite")
+    return a
+
+
+class SamplePoints:
+    """Where each native pixel samples the footprints: its centre ``(c + 1/2, r + 1/2)`` moved by a fixed
+    offset of at most SAMPLE_JITTER pixels per coordinate (a deterministic low-discrepancy pattern).
+
+    At ``alpha = 0`` the offset changes nothing (a sample stays inside its own surfel and outside its
+    neighbours'), but under motion the pixels of a uniformly shifted surface hand over at different
+    instants instead of all at once, so the image changes gradually and no single pose change is a jump
+    of the whole picture by a pixel."""
+
+    def __init__(self, H: int, W: int, device):
+        r, c = np.mgrid[0:H, 0:W]
+        g = 1.32471795724474602596  # the plastic number: R2 sequence
+        jx = SAMPLE_JITTER * (2.0 * np.mod(0.5 + (r * W + c) / g, 1.0) - 1.0)
+        jy = SAMPLE_JITTER * (2.0 * np.mod(0.5 + (r * W + c) / (g * g), 1.0) - 1.0)
+        self.W, self.H = W, H
+        self.su = torch.as_tensor((c + 0.5 + jx).reshape(-1), device=device)
+        self.sv = torch.as_tensor((r + 0.5 + jy).reshape(-1), device=device)
+
+
+
+def covered_pairs(umin, umax, vmin, vmax, mask, samples: SamplePoints, eps: float, inner=None):
+    """``(point, where, inside)`` of every native pixel whose sample point lies in the box
+    ``[umin - eps, umax + eps) x [vmin - eps, vmax + eps)`` of a point where ``mask`` (arrays (B, P);
+    ``eps`` < 0 shrinks the boxes), ``where = b * H * W + pixel`` for batch element ``b``. With
+    ``inner = (umin, umax, vmin, vmax, mask, eps)`` of boxes inside these, ``inside`` flags the pairs whose
+    sample also lies in the inner box (else None)."""
+    W, H = samples.W, samples.H
+    B, P = umin.shape
+    dev = umin.device
+    # the pixels whose sample can lie in the box: columns c0 <= c < c1, rows r0 <= r < r1
+    c0 = torch.ceil(umin - (eps + 0.5 + SAMPLE_JITTER)).clamp_(0, W).long().view(-1)
+    c1 = torch.ceil(umax + (eps - 0.5 + SAMPLE_JITTER)).clamp_(0, W).long().view(-1)
+    r0 = torch.ceil(vmin - (eps + 0.5 + SAMPLE_JITTER)).clamp_(0, H).long().view(-1)
+    r1 = torch.ceil(vmax + (eps - 0.5 + SAMPLE_JITTER)).clamp_(0, H).long().view(-1)
+    nc, nr = c1.sub_(c0).clamp_(min=0), r1.sub_(r0).clamp_(min=0)   # (a NaN edge: no pixel, not an overflow)
+    live = mask.reshape(-1) & (nc > 0) & (nr > 0)
+    base = r0.mul_(W).add_(c0)
+    lo_u, hi_u = (umin - eps).view(-1), (umax + eps).view(-1)
+    lo_v, hi_v = (vmin - eps).view(-1), (vmax + eps).view(-1)
+    if inner is not None:
+        iu0, iu1, iv0, iv1, imask, ieps = inner
+        inner = ((iu0 - ieps).view(-1), (iu1 + ieps).view(-1), (iv0 - ieps).view(-1), (iv1 + ieps).view(-1), imask.reshape(-1))
+
+    def inside(su, sv, boxes, at=None):   # samples su, sv in the boxes (at: of these boxes only)
+        u0, u1, v0, v1 = (x if at is None else x[at] for x in boxes[:4])
+        ok = (u0 <= su) & (su < u1) & (v0 <= sv) & (sv < v1)
+        return ok.logical_and_(boxes[4] if at is None else boxes[4][at]) if len(boxes) > 4 else ok
+
+    points, wheres, insides = [], [], []
+    # the 2x2 corner of every box, offset by offset over all boxes at once (no per-pair gathers)
+    batch_base = base + torch.arange(B, device=dev).mul_(H * W).repeat_interleave(P)   # b * H * W + r0 * W + c0
+    wide, tall = nc > 1, nr > 1
+    for sel, off in ((live, 0), (live & wide, 1), (live & tall, W), (live & wide & tall, W + 1)):
+        pix = (base + off).clamp_(0, H * W - 1)
+        su, sv = samples.su[pix], samples.sv[pix]
+        f = torch.nonzero(inside(su, sv, (lo_u, hi_u, lo_v, hi_v, sel)), as_tuple=True)[0]
+        points.append(f % P)
+        wheres.append(batch_base[f] + off)
+        if inner is not None:
+            insides.append(inside(su, sv, inner)[f])
+    more = torch.nonzero(live & ((nc > 2) | (nr > 2)), as_tuple=True)[0]
+    if len(more):  # boxes over 2 pixels a side (a point near the camera plane, long sweeps): the rest of each
+        cnt = nc[more] * nr[more]
+        rep = torch.repeat_interleave(torch.arange(len(more), device=dev), cnt)
+        t = torch.arange(int(cnt.sum()), device=dev) - (torch.cumsum(cnt, 0) - cnt)[rep]
+        f, ncr = more[rep], nc[more][rep]
+        dr, dc = torch.div(t, ncr, rounding_mode="floor"), t % ncr
+        rest = (dr > 1) | (dc > 1)
+        f, off = f[rest], dr[rest] * W + dc[rest]
+        pix = base[f] + off
+        su, sv = samples.su[pix], samples.sv[pix]
+        ok = inside(su, sv, (lo_u, hi_u, lo_v, hi_v), f)
+        f, off, su, sv = f[ok], off[ok], su[ok], sv[ok]
+        points.append(f % P)
+        wheres.append(batch_base[f] + off)
+        if inner is not None:
+            insides.append(inside(su, sv, inner, f))
+    return torch.cat(points), torch.cat(wheres), (torch.cat(insides) if inner is not None else None)
+
+
+class FootprintSweep:
+    """Where the surfel footprints can be over the segments of a grid: per segment and surfel the range of
+    every corner's ``u``, ``v`` and the least corner depth and the centre depth range (:meth:`ranges`),
+    read at the segment's ends and at the split points of :func:`.motion.split_events` inside it (between
+    them every corner moves monotonically). Every tensor operation serves a whole batch of consecutive
+    segments. The bounds (:mod:`.surfel_bounds`) build on it; the renderer uses it to leave out the
+    surfels no motion of a range can show (:meth:`maybe_visible`)."""
+
+    def __init__(self, r: SurfelRenderer, lo: float, hi: float):
+        self.r = r
+        self.P = r.num_points
+        corners = r.corners_np.reshape(-1, 3)
+        self.corner_ev = split_events(corners, r.axis, lo, hi)      # corner u, v, depth extrema
+        self.centre_ev = split_events(r.points_np, r.axis, lo, hi)  # centre depth extrema
+
+    @staticmethod
+    def _inside(ev, g: np.ndarray, device):
+        """The events strictly inside the segments of the grid ``g``: (index, alpha, segment) tensors (an
+        event on a grid point is that point, evaluated as an end)."""
+        i, t = ev
+        s, e = np.searchsorted(t, g[0], side="right"), np.searchsorted(t, g[-1], side="left")
+        i, t = i[s:e], t[s:e]
+        seg = np.searchsorted(g, t, side="left") - 1          # g[seg] < t <= g[seg + 1]
+        ok = t < g[np.minimum(seg + 1, len(g) - 1)]
+        return (torch.as_tensor(i[ok], device=device), torch.as_tensor(t[ok], device=device),
+                torch.as_tensor(seg[ok], device=device))
+
+    def ranges(self, g):
+        """Per segment ``[g[k], g[k+1]]`` and surfel: the range of every corner's ``u`` and ``v`` (B, 4, P), the
+        least corner depth (B, 4, P), the centre depth range (B, P) each."""
+        r, P = self.r, self.P
+        g = np.asarray(g, dtype=np.float64)
+        B = len(g) - 1
+        t = torch.as_tensor(g, dtype=torch.float64, device=r.device)
+        u, v, d = project(r.corners[None], r.intr, r.axis, t[:, None, None], xp=torch)   # (B+1, 4, P)
+        zc = depth(r.points[None], r.axis, t[:, None], xp=torch)                          # (B+1, P)
+        u_lo, u_hi = torch.minimum(u[:-1], u[1:]).reshape(-1), torch.maximum(u[:-1], u[1:]).reshape(-1)   # (B 4 P)
+        v_lo, v_hi = torch.minimum(v[:-1], v[1:]).reshape(-1), torch.maximum(v[:-1], v[1:]).reshape(-1)
+        d_lo = torch.minimum(d[:-1], d[1:]).reshape(-1)
+        z_lo, z_hi = torch.minimum(zc[:-1], zc[1:]).reshape(-1), torch.maximum(zc[:-1], zc[1:]).reshape(-1)
+        flat, te, seg = self._inside(self.corner_ev, g, r.device)
+        if len(flat):
+            uu, vv, dd = project(r.corners.reshape(-1, 3)[flat], r.intr, r.axis, te, xp=torch)
+            at = seg * (4 * P) + flat
+            u_lo = u_lo.scatter_reduce(0, at, uu, "amin")
+            u_hi = u_hi.scatter_reduce(0, at, uu, "amax")
+            v_lo = v_lo.scatter_reduce(0, at, vv, "amin")
+            v_hi = v_hi.scatter_reduce(0, at, vv, "amax")
+            d_lo = d_lo.scatter_reduce(0, at, dd, "amin")
+        p, te, seg = self._inside(self.centre_ev, g, r.device)
+        if len(p):
+            zz = depth(r.points[p], r.axis, te, xp=torch)
+            at = seg * P + p
+            z_lo = z_lo.scatter_reduce(0, at, zz, "amin")
+            z_hi = z_hi.scatter_reduce(0, at, zz, "amax")
+        shape = (B, 4, P)
+        return (u_lo.view(shape), u_hi.view(shape), v_lo.view(shape), v_hi.view(shape), d_lo.view(shape),
+                z_lo.view(B, P), z_hi.view(B, P))
+
+    def maybe_visible(self, a: float, b: float) -> np.ndarray:
+        """Surfels that can cover a native pixel for some alpha in ``[a, b]`` (a superset)."""
+        u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi = (x[0] for x in self.ranges([a, b]))
+        H, W = self.r.intr.height, self.r.intr.width
+        wild = (z_hi > 0) & ~((d_lo > 0).all(0) & (z_lo > 0))
+        inside = (u_hi.amax(0) >= -1) & (u_lo.amin(0) <= W + 1) & (v_hi.amax(0) >= -1) & (v_lo.amin(0) <= H + 1)
+        return ((z_hi > 0) & (inside | wild)).cpu().numpy()
+
+
+__all__ = ["FootprintSweep", "SamplePoints", "SurfelRenderer", "bin_cloud", "covered_pairs", "occlusion_key",
+           "surfel_corners"]

@@ -1,0 +1,273 @@
+"""Sound per-segment bounds of the surfel imaging model (docs/imaging.md and :mod:`.imaging` for the
+model; docs/certificate.md for how a certificate uses them).
+
+For a segment ``[a, b]`` of the plan, every native pixel gets the per-channel interval ``[lo, hi]`` of
+every value it can show for some ``alpha`` in the segment (:func:`segment_hulls`, :func:`hulls_within`):
+the colours of every surfel whose footprint can cover its sample point there and that no surely covering
+surfel always hides, plus its uncovered value unless some surfel surely covers it throughout. Footprint
+corners are monotone between the split points of :func:`.motion.split_events`, so their ranges over the
+segment are read at its ends and at those split points (:class:`.surfel.FootprintSweep`), widened by
+``EDGE_EPS`` pixels for float rounding. The renderer ranks its surfels in occlusion order (key, then
+index: one constant order for the whole motion), so a surfel that surely covers a pixel throughout the
+segment hides every later surfel, equal keys included, by one comparison of ranks: no depth tolerance is
+needed. The block mean is linear with positive weights, so the output pixel of every frame of the
+segment lies in the block means of ``lo`` and ``hi`` (widened by ``VALUE_EPS`` for float32 rounding).
+Distances to any frame ``y`` are then bounded by ``sum max((lo - y)^2, (hi - y)^2)`` (:class:`HullValues`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from .cloud import Cloud
+from .errors import require
+from .framing import EDGE_EPS, SAFETY, VALUE_EPS, Imaging, block_mean64
+from .partition import validate_grid
+from .surfel import FootprintSweep, SurfelRenderer, covered_pairs
+
+
+@dataclass
+class HullValues:
+    """Per segment ``i`` of ``alphas`` and output pixel/channel, ``lo[i] <= x(alpha) <= hi[i]`` for every
+    ``alpha`` in ``[alphas[i], alphas[i+1]]`` (float32, already widened for rounding)."""
+
+    alphas: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    constant: np.ndarray   # (S, H, W): the pixel shows one value throughout the segment (bitwise)
+    details: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def num_segments(self) -> int:
+        return len(self.alphas) - 1
+
+    def dist_sq(self, y: np.ndarray, segments: slice | np.ndarray | None = None) -> np.ndarray:
+        """``D_i(y)^2 = sum max((lo - y)^2, (hi - y)^2)``: ``|x(alpha) - y|^2 <= D_i(y)^2`` on segment ``i``."""
+        sel = slice(None) if segments is None else segments
+        y = _as_numpy(y)
+        # max((lo - y)^2, (hi - y)^2) = max(y - lo, hi - y)^2 (one of the two is the larger magnitude):
+        # float64 throughout, two temporaries, the squares summed as a dot product
+        m = np.subtract(y, self.lo[sel], dtype=np.float64)
+        e = np.subtract(self.hi[sel], y, dtype=np.float64)
+        np.maximum(m, e, out=m)
+        m = m.reshape(m.shape[0], -1)
+        return np.einsum("ij,ij->i", m, m) * SAFETY
+
+    def pair_bound_sq(self, frames, k0: int = 0) -> np.ndarray:
+        """``|x(alpha) - x_i|^2 + |x(alpha) - x_{i+1}|^2`` bounds for segments ``k0 .. k0 + len(frames) - 2``."""
+        f = _as_numpy(frames)
+        a, b = f[:-1], f[1:]
+        sl = slice(k0, k0 + len(a))
+        lo, hi = self.lo[sl].astype(np.float64), self.hi[sl].astype(np.float64)
+        m = np.maximum((lo - a) ** 2 + (lo - b) ** 2, (hi - a) ** 2 + (hi - b) ** 2)
+        return m.reshape(m.shape[0], -1).sum(axis=1) * SAFETY
+
+    def anchor_dist_sq(self, frames, anchor, k0: int = 0) -> np.ndarray:
+        """``D_i(anchor)^2`` for segments ``k0 .. k0 + len(frames) - 2`` (same interface as
+        :class:`.bounds.SegmentValues`; only the number of frames is used)."""
+        return self.dist_sq(anchor, slice(k0, k0 + len(frames) - 1))
+
+
+    def to_segment_values(self, frames: np.ndarray):
+        """The same bounds as sparse extra values (:class:`.bounds.SegmentValues`, the format that crosses
+        the topics of the four-process mode): the 8 corners of the box ``[lo, hi]`` of every output
+        pixel that is not constant over the segment (a convex distance is largest at a corner, so the
+        maximum over the corners is the maximum over the box); a constant pixel shows the end frames'
+        value throughout and needs none."""
+        from .bounds import SegmentValues
+
+        S = self.num_segments
+        lo, hi = self.lo.reshape(S, -1, 3), self.hi.reshape(S, -1, 3)
+        seg, pix = np.nonzero(~self.constant.reshape(S, -1))
+        segs, pixs, vals = [], [], []
+        for corner in range(8):
+            pick = [(corner >> ch) & 1 for ch in range(3)]
+            v = np.stack([(hi if pick[ch] else lo)[seg, pix, ch] for ch in range(3)], axis=1)
+            segs.append(seg)
+            pixs.append(pix)
+            vals.append(v)
+        seg_e, pix_e, val_e = np.concatenate(segs), np.concatenate(pixs), np.concatenate(vals)
+        order = np.lexsort((pix_e, seg_e))
+        h, w = self.lo.shape[1:3]
+        return SegmentValues(np.asarray(self.alphas), seg_e[order], pix_e[order], val_e[order].astype(np.float32), (h, w))
+
+    @classmethod
+    def from_segment_values(cls, values, frames) -> "HullValues":
+        """The boxes of sparse values received with their frames (the four-process certifier): per segment,
+        pixel and channel the least and greatest of the values :class:`.bounds.SegmentValues` allows there
+        (both end frames' values and the extra ones). Every value of the set lies in its box, so the box's
+        distance bounds are at least the set's; for the sparse form of :meth:`to_segment_values` they are
+        the original boxes where a pixel changes and the (bitwise equal) end values where it does not."""
+        f = _as_numpy(frames, np.float32)
+        require(f.ndim == 4 and f.shape[3] == 3, f"frames must be (N, H, W, 3), got {f.shape}")
+        S = len(f) - 1
+        require(S >= 1 and values.num_segments == S and tuple(values.shape) == tuple(f.shape[1:3]),
+                f"bounds of {values.num_segments} segments at {values.shape} do not fit {len(f)} frames of {f.shape[1:3]}")
+        seg, pix, val = np.asarray(values.seg), np.asarray(values.pix), np.asarray(values.val)
+        require(seg.ndim == 1 and pix.shape == seg.shape and val.shape == seg.shape + (3,),
+                f"sparse bounds need seg (E,), pix (E,) and val (E, 3), got {seg.shape}, {pix.shape}, {val.shape}")
+        require(np.issubdtype(seg.dtype, np.integer) and np.issubdtype(pix.dtype, np.integer),
+                "sparse bounds name segments and pixels by integers")
+        require(bool(np.isfinite(f).all()) and bool(np.isfinite(val).all()), "frames or bounds contain NaN or inf")
+        seg, pix = seg.astype(np.int64), pix.astype(np.int64)
+        # values are float32 (the renderer's); any other float is rounded outwards, so the box still holds it
+        v64 = val.astype(np.float64)
+        v32 = v64.astype(np.float32)
+        v_lo = np.where(v32.astype(np.float64) > v64, np.nextafter(v32, np.float32(-np.inf)), v32)
+        v_hi = np.where(v32.astype(np.float64) < v64, np.nextafter(v32, np.float32(np.inf)), v32)
+        lo = np.minimum(f[:-1], f[1:]).reshape(S, -1, 3)
+        hi = np.maximum(f[:-1], f[1:]).reshape(S, -1, 3)
+        constant = (f[:-1] == f[1:]).all(axis=3).reshape(S, -1)
+        if len(seg):
+            require(int(seg.min()) >= 0 and int(seg.max()) < S and int(pix.min()) >= 0 and int(pix.max()) < lo.shape[1],
+                    "bounds name a segment or pixel outside the plan")
+            key = seg * lo.shape[1] + pix
+            order = np.argsort(key, kind="stable")
+            key = key[order]
+            start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+            g = key[start]
+            gs, gp = g // lo.shape[1], g % lo.shape[1]
+            lo[gs, gp] = np.minimum(lo[gs, gp], np.minimum.reduceat(v_lo[order], start, axis=0))
+            hi[gs, gp] = np.maximum(hi[gs, gp], np.maximum.reduceat(v_hi[order], start, axis=0))
+            constant[gs, gp] = False
+        h, w = f.shape[1:3]
+        return cls(np.asarray(values.alphas, dtype=np.float64), lo.reshape(S, h, w, 3), hi.reshape(S, h, w, 3),
+                   constant.reshape(S, h, w), {"segments": S, "from": "segment values"})
+
+
+def render_plan_surfel(cloud: Cloud, imaging: Imaging, plan, device: str = "cpu"):
+    """Frames and bounds of a plan with the surfel model as a :class:`.bounds.RenderedPlan` (what the
+    projector node publishes; the bounds as :meth:`HullValues.to_segment_values`)."""
+    import time
+
+    from .bounds import RenderedPlan
+
+    t0 = time.perf_counter()
+    validate_grid(plan.alphas, plan.radius)
+    cloud.require_nonempty()
+    r = SurfelRenderer(cloud, imaging, plan.axis, device=device, alpha_range=(float(plan.alphas[0]), float(plan.alphas[-1])))
+    frames = r.render_batch(plan.alphas)
+    hulls = segment_hulls(r, plan.alphas)
+    f = frames.cpu().numpy()
+    return RenderedPlan(plan, frames, hulls.pair_bound_sq(f), hulls.to_segment_values(f), time.perf_counter() - t0)
+
+
+def _as_numpy(x, dtype=np.float64) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x, dtype=dtype)
+
+
+def segment_hulls(renderer: SurfelRenderer, alphas, *, max_bytes: int = 1 << 30) -> HullValues:
+    """The per-segment value intervals of the surfel model for the grid ``alphas`` (see the module doc)."""
+    alphas = np.asarray(alphas, dtype=np.float64)
+    require(len(alphas) >= 2, "a plan needs at least two motion values")
+    return hulls_within(renderer, float(alphas[0]), float(alphas[-1]), max_bytes=max_bytes)(alphas)
+
+
+def hulls_within(renderer: SurfelRenderer, lo: float, hi: float, *, max_bytes: int = 1 << 30):
+    """``hulls(g)``: the :class:`HullValues` of the segments of an increasing grid ``g`` inside ``[lo, hi]``,
+    bounded in batches of segments by one sweep set up once over ``[lo, hi]``; for grids chosen one after
+    another (:func:`.coverage.frontier_reach`) as for one whole plan (:func:`segment_hulls`). A grid
+    whose bounds need more than ``max_bytes`` is refused."""
+    sweep = _HullSweep(renderer, float(lo), float(hi))
+    h, w = renderer.imaging.out_shape
+
+    def hulls(g) -> HullValues:
+        g = np.asarray(g, dtype=np.float64)
+        require(len(g) >= 2 and lo <= g[0] and g[-1] <= hi and bool(np.all(np.diff(g) > 0)),
+                f"grid {g!r} is not increasing inside [{lo!r}, {hi!r}]")
+        S = len(g) - 1
+        need = 2 * S * h * w * 3 * 4
+        require(need <= max_bytes, f"bounds of {S} segments at {w}x{h} need {need / 2**20:.0f} MiB, more than "
+                                   f"{max_bytes / 2**20:.0f} MiB: use fewer partitions")
+        l_ = np.empty((S, h, w, 3), np.float32)
+        h_ = np.empty((S, h, w, 3), np.float32)
+        constant = np.empty((S, h, w), bool)
+        for s in range(0, S, sweep.batch):
+            e = min(S, s + sweep.batch)
+            l_[s:e], h_[s:e], constant[s:e] = sweep.segments(g[s:e + 1])
+        return HullValues(g, l_, h_, constant, {"surfels": renderer.num_points, "segments": S})
+
+    return hulls
+
+
+HULL_BATCH_ELEMENTS = 300_000   # surfel-segments bounded per batch of segments (about 0.5 KB each at the peak: ~160 MB)
+
+class _HullSweep(FootprintSweep):
+    """Bounds the surfel footprints over batches of consecutive segments: every tensor operation serves
+    a whole batch, so its cost (and the wake-up of torch's threads) is shared by the segments."""
+
+    @property
+    def batch(self) -> int:
+        """Segments per batch."""
+        return max(1, HULL_BATCH_ELEMENTS // max(1, self.P))
+
+    def segments(self, g) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``lo, hi`` (B, h, w, 3) float32 and ``constant`` (B, h, w) of the segments of the grid ``g``."""
+        return self._bound(*self.ranges(g))
+
+    def _bound(self, u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi):
+        r = self.r
+        H, W = r.intr.height, r.intr.width
+        HW = H * W
+        B, _, P = u_lo.shape
+        dev = r.device
+        # a surfel is drawn at alpha iff every corner and its centre are in front of the camera
+        sure_drawn = (d_lo > 0).all(1) & (z_lo > 0)                                           # (B, P)
+        maybe = z_hi > 0
+        # where a corner may cross depth 0 its projection is unbounded: the whole image
+        wild = maybe & ~sure_drawn
+        big = float(max(H, W)) + 10.0
+        sw_u0 = u_lo.amin(1).masked_fill_(wild, -big)
+        sw_u1 = u_hi.amax(1).masked_fill_(wild, big)
+        sw_v0 = v_lo.amin(1).masked_fill_(wild, -big)
+        sw_v1 = v_hi.amax(1).masked_fill_(wild, big)
+        # surely covered: left edge at its rightmost, right edge at its leftmost (module doc)
+        su0, su1 = u_hi.amin(1), u_lo.amax(1)
+        sv0, sv1 = v_hi.amin(1), v_lo.amax(1)
+        # candidates: possibly covering at some alpha of the segment (q: segment and native pixel), and
+        # among them the surely covering pairs (the sure box lies inside the sweep box, sure_drawn implies maybe)
+        cp, q, is_sure = covered_pairs(sw_u0, sw_u1, sw_v0, sw_v1, maybe, r.samples, EDGE_EPS,
+                                       inner=(su0, su1, sv0, sv1, sure_drawn, -EDGE_EPS))
+        # the first surely covering surfel in occlusion order (its rank; P: none), per segment and native
+        # pixel: it hides every later surfel throughout the segment (the order is constant in alpha, equal
+        # keys included: the renderer's own ranks)
+        sure_first = torch.full((B * HW,), P, dtype=torch.long, device=dev)
+        sure_first.scatter_reduce_(0, q[is_sure], r.rank[cp[is_sure]], reduce="amin", include_self=True)
+        rc = r.rank[cp]
+        keep = rc <= sure_first[q]
+        cp, q = cp[keep], q[keep]
+        # the values of the native pixels: the renderer's own float32 colours (and its uncovered value of
+        # each pixel where no surfel surely covers it), their least and greatest per channel exactly
+        col = r.colors
+        open_ = (sure_first == P)[:, None]
+        uncovered = r.uncovered.repeat(B, 1)                                               # (B HW, 3)
+        lo = torch.where(open_, uncovered, torch.tensor(float("inf"), dtype=col.dtype, device=dev))
+        hi = torch.where(open_, uncovered, torch.tensor(float("-inf"), dtype=col.dtype, device=dev))
+        if len(cp):
+            idx = q[:, None].expand(-1, 3)
+            vals = col[cp]
+            lo.scatter_reduce_(0, idx, vals, reduce="amin", include_self=True)
+            hi.scatter_reduce_(0, idx, vals, reduce="amax", include_self=True)
+        # every pixel has a value (the background where open, its sure surfel otherwise: kept, the channels together)
+        require(bool(torch.isfinite(lo[:, 0]).all()), "internal: a pixel without any value")
+        im = r.imaging
+        lo_o = block_mean64(lo.view(B, H, W, 3).to(torch.float64), im) - VALUE_EPS
+        hi_o = block_mean64(hi.view(B, H, W, 3).to(torch.float64), im) + VALUE_EPS
+        # output pixels whose every native pixel has one value throughout: bitwise constant over the segment
+        k = im.factor
+        h, w = im.out_shape
+        one = (lo == hi).all(dim=1).view(B, h, k, w, k).all(dim=4).all(dim=2)
+        bx, by = im.border
+        if bx:
+            one[:, :, :bx] = one[:, :, w - bx:] = True
+        if by:
+            one[:, :by] = one[:, h - by:] = True
+        return (lo_o.cpu().numpy().astype(np.float32), hi_o.cpu().numpy().astype(np.float32), one.cpu().numpy())
+
+
+__all__ = ["HullValues", "hulls_within", "render_plan_surfel", "segment_hulls"]
