@@ -31,6 +31,10 @@ Per input frame (source stamp ``S`` in ns, source optical frame ``F``):
     frame's ERROR certification, as the pipeline node does for bad input.
 
 A plan whose axes are all errors may carry ``"camera": null`` (the input had no valid camera).
+
+One module on purpose (about 480 lines): it is the wire protocol of the four processes, one section per
+topic above, each message's writer beside its parser and both on the same validators (stamps, counts,
+frame tags, sizes); split, a writer and the parser that must accept exactly what it writes would drift.
 """
 from __future__ import annotations
 
