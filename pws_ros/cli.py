@@ -12,7 +12,7 @@ import sys
 from . import __version__
 from .core.errors import PwsError
 
-COMMANDS = ("plan", "render", "certify", "audit", "replay", "bench", "sim", "train", "export_model", "finetune")
+COMMANDS = ("plan", "render", "certify", "audit", "replay", "ceiling", "bench", "sim", "train", "export_model", "finetune")
 
 DESCRIPTION = """\
 Certify that an image classifier keeps its prediction under camera motion, with Pixel-wise
