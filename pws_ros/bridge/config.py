@@ -78,11 +78,14 @@ PwsConfig.__doc__ = ("Validated parameter values: one field per parameter of :da
 
 
 def check_consistency(cfg: PwsConfig) -> None:
-    """Cross-parameter rules (PwsError): pws needs a dense cloud; render size given in full."""
+    """Cross-parameter rules (PwsError): pws needs a dense cloud; render size given in full; a worker index
+    below the number of workers."""
     require(not (cfg.method == "pws" and not cfg.dense_cloud_path),
             "method pws needs the entire scene cloud: set dense_cloud_path (or use pws_of / pws_l with the one-frame cloud)")
     require((cfg.render_width == 0) == (cfg.render_height == 0),
             f"render_width and render_height must both be 0 or both set, got {cfg.render_width}x{cfg.render_height}")
+    require(cfg.worker_index < cfg.num_workers,
+            f"worker_index {cfg.worker_index} must be below num_workers {cfg.num_workers} (workers are numbered from 0)")
     require(not (cfg.method == "pws" and cfg.imaging == "surfel"),
             "method pws plans on the entire scene cloud, which has no depth pixels to make surfels of: set imaging: paper "
             "(or use pws_of / pws_l with the one-frame cloud)")

@@ -39,6 +39,7 @@ from .preview import render_previews
 from .scheme import PlanBundle, rendered_plan_from_parts
 from .selfaudit import audit_certificate
 from .assembly import AssembledFrame
+from .budget import WARMUP_POINTS, CostModel, Sizes, measure_inference, size_axis
 
 LogFn = Callable[[str, str], None]   # (level: "info" | "warn" | "error", message)
 
@@ -113,11 +114,15 @@ class FrameCertifier:
         self._imaging_described = False   # surfel imaging: its description and memory estimate were logged
         self._sigma_checked: float | None = None
         self._frames_seen = 0
+        self.costs = CostModel()          # time_budget_s: what work costs on this machine (bridge.budget)
+        self._geometry_warm = False
         if load:
             self.model  # noqa: B018 - load now
             self.denoiser  # noqa: B018
             if config.method == "pws":
                 self.dense_cloud  # noqa: B018
+            if config.time_budget_s > 0 and getattr(self._model, "input_size", None) is not None:
+                self.warm_up_inference(tuple(self._model.input_size))
 
     # ---- lazily loaded resources ----
     @property
@@ -184,8 +189,9 @@ class FrameCertifier:
                 self.log("warn", text)
         return im
 
-    def certify_config(self, axis: str | None = None, stamp_ns: int = 0):
-        """The core's CertifyConfig; for an axis of a frame: ``alpha / len(axes)`` and the derived seed."""
+    def certify_config(self, axis: str | None = None, stamp_ns: int = 0, sizes: Sizes | None = None):
+        """The core's CertifyConfig; for an axis of a frame: ``alpha / len(axes)`` and the derived seed;
+        with ``sizes`` (a time budget, :mod:`.budget`): their ``num_anchors``, ``n`` and ``max_partitions``."""
         from dataclasses import replace
 
         from ..core.smoothing import derive_seed
@@ -195,7 +201,60 @@ class FrameCertifier:
         if axis is not None:
             cfg = replace(cfg, alpha=self.config.alpha / max(1, len(self.config.axes)),
                           seed=derive_seed(self.config.seed, int(stamp_ns), axis))
+        if sizes is not None and sizes.reduced:
+            cfg = replace(cfg, num_anchors=int(sizes.num_anchors), n=int(sizes.n), max_partitions=int(sizes.max_partitions),
+                          min_partitions=min(int(cfg.min_partitions), int(sizes.max_partitions)))
         return cfg
+
+    # ---- time budget (time_budget_s; pws_ros.bridge.budget) ----
+    def warm_up_inference(self, shape: tuple[int, int]) -> None:
+        """Measure a classifier call of 1 image and of ``batch_size`` images at input ``shape`` (H, W)."""
+        c = self.config
+        t_one, t_full = measure_inference(self.model, shape, int(c.batch_size), float(c.sigma), denoiser=self.denoiser)
+        self.costs.set_inference(t_one, t_full, int(c.batch_size))
+        self.log("info", f"time budget {c.time_budget_s:g} s per frame: a classifier call of {c.batch_size} images takes "
+                         f"{1000 * t_full:.1f} ms here ({1000 * t_one:.1f} ms for 1)")
+
+    def warm_up_geometry(self, cloud: Cloud, imaging: Any, axis: str, dense_cloud: Cloud | None = None) -> None:
+        """Measure planning and the geometry of a small grid (WARMUP_POINTS points) of this frame."""
+        from ..core.certify import bounds_bytes
+        from ..core.imaging import make_renderer, segment_bounds
+
+        src = self.source_cloud(cloud, dense_cloud)
+        for points in (3, WARMUP_POINTS):   # the first pass pays what is paid once (lazy initialisation): not counted
+            t0 = time.perf_counter()
+            plan = self.plan_axis(src, imaging, axis, max_partitions=points)
+            renderer = make_renderer(src, imaging, axis, device=self.device,
+                                     alpha_range=(float(plan.alphas[0]), float(plan.alphas[-1])))
+            t1 = time.perf_counter()
+            renderer.render_batch(plan.alphas)
+            segment_bounds(renderer, src, imaging, plan.alphas, max_bytes=bounds_bytes(self.certify_config()))
+            t2 = time.perf_counter()
+        per_point = (t2 - t1) / max(1, plan.num_partitions)
+        self.costs.set_geometry(t1 - t0, per_point)
+        self._geometry_warm = True
+        self.log("info", f"time budget: planning and set-up take {1000 * (t1 - t0):.1f} ms, the geometry {1000 * per_point:.1f} "
+                         f"ms per grid point (warm-up on the first frame, {plan.num_partitions} points)")
+
+    def _budget_ready(self, cloud: Cloud, imaging: Any, dense_cloud: Cloud | None) -> None:
+        """The warm-ups not yet made: the classifier (when its input size was unknown at start), the geometry
+        on the first frame (on the first axis that plans; an axis that cannot is reported by its certificate)."""
+        if not math.isfinite(self.costs.batch_s):
+            self.warm_up_inference(tuple(imaging.out_shape))
+        for axis in self.config.axes:
+            if self._geometry_warm:
+                break
+            try:
+                self.warm_up_geometry(cloud, imaging, axis, dense_cloud)
+            except PwsError:
+                continue
+
+    def size_for(self, share_s: float) -> Sizes:
+        """The sizes of one axis for ``share_s`` seconds from the current cost model (:func:`.budget.size_axis`)."""
+        c = self.config
+        return size_axis(share_s, self.costs, n0=int(c.n0), n=int(c.n), num_anchors=int(c.num_anchors),
+                         max_partitions=int(c.max_partitions), batch_size=int(c.batch_size),
+                         per_point=c.coverage != "anchors")
 
     def _stamp(self, cert: Certificate) -> Certificate:
         cert.frame_alpha = float(self.config.alpha)
@@ -240,14 +299,16 @@ class FrameCertifier:
         return cloud
 
     # ---- stage 1: plan ----
-    def plan_axis(self, cloud: Cloud, imaging: Any, axis: str) -> Any:
+    def plan_axis(self, cloud: Cloud, imaging: Any, axis: str, max_partitions: int | None = None) -> Any:
+        """The plan of one axis; ``max_partitions`` (a time budget's) replaces the configured cap."""
         from ..core.imaging import plan_for
 
         c = self.config
         require(c.method != "cms", "method cms has no partition plan")
+        cap = int(c.max_partitions if max_partitions is None else max_partitions)
         return plan_for(cloud, imaging, axis, c.radius_for(axis), c.method, step_px=c.step_px,
-                        delta=c.delta if c.delta > 0 else None, max_partitions=c.max_partitions,
-                        min_partitions=c.min_partitions)
+                        delta=c.delta if c.delta > 0 else None, max_partitions=cap,
+                        min_partitions=min(int(c.min_partitions), cap))
 
     def anchor_grid(self, cloud: Cloud, imaging: Any, plan: Any, stamp_ns: int = 0) -> Any:
         """The plan the four-process projector renders: with surfel imaging and ``coverage: anchors``
@@ -334,10 +395,11 @@ class FrameCertifier:
     # ---- all stages in memory ----
     def certify_axis(self, cloud: Cloud, imaging: Any, axis: str, dense_cloud: Cloud | None = None,
                      preview_every: int = 0, previews: list | None = None, plans: dict | None = None,
-                     stamp_ns: int = 0) -> Certificate:
+                     stamp_ns: int = 0, sizes: Sizes | None = None) -> Certificate:
         """Plan, render and certify one axis with the core's ``certify`` (frames are never all kept in
-        memory). ``imaging`` is the frame's :class:`~pws_ros.core.imaging.Imaging`. Never raises:
-        failures are ERROR certificates."""
+        memory). ``imaging`` is the frame's :class:`~pws_ros.core.imaging.Imaging`; ``sizes`` (a time
+        budget's, fixed before any sample is drawn) replace num_anchors, n and max_partitions. Never
+        raises: failures are ERROR certificates."""
         from ..core.certify import certify
 
         c = self.config
@@ -346,17 +408,19 @@ class FrameCertifier:
             return self._guard(axis, lambda: self._stamp(certify(cloud, intr, self.model, axis, c.radius_for(axis), method="cms",
                                                                  config=self.certify_config(axis, stamp_ns),
                                                                  denoiser=self.denoiser, imaging=imaging)))
+        config = self.certify_config(axis, stamp_ns, sizes)
 
         def run() -> Certificate:
             t0 = time.perf_counter()
             src = self.source_cloud(cloud, dense_cloud)
-            plan = self.plan_axis(src, imaging, axis)
+            plan = (self.plan_axis(src, imaging, axis) if config.max_partitions == c.max_partitions
+                    else self.plan_axis(src, imaging, axis, max_partitions=config.max_partitions))
             if plans is not None:
                 plans[axis] = plan
             t_plan = time.perf_counter() - t0
             final: list = []
             cert = certify(src, intr, self.model, axis, c.radius_for(axis), method=c.method,
-                           config=self.certify_config(axis, stamp_ns), denoiser=self.denoiser, plan=plan, imaging=imaging,
+                           config=config, denoiser=self.denoiser, plan=plan, imaging=imaging,
                            plan_out=final)
             if final:  # the adaptive anchors may refine the plan: publish the poses the certificate rests on
                 plan = final[-1]
@@ -391,15 +455,35 @@ class FrameCertifier:
             certs = [self.error_for(a, str(exc)) for a in self.config.axes]
         self._frames_seen += 1
         audit = self.config.audit_every > 0 and (self._frames_seen - 1) % self.config.audit_every == 0
+        budget = float(self.config.time_budget_s)
+        share = 0.0
+        if imaging is not None and budget > 0 and self.config.method != "cms":
+            try:
+                self._budget_ready(cloud, imaging, dense_cloud)
+            except PwsError:
+                pass   # the axes report what fails (planning, rendering) in their certificates
+            # every axis gets an even share of what is left of the frame's budget after the imaging (and warm-up)
+            share = max(0.0, budget - (time.perf_counter() - t0)) / max(1, len(self.config.axes))
         if imaging is not None:
             for axis in self.config.axes:
                 t1 = time.perf_counter()
                 if should_stop is not None and should_stop():
                     certs.append(self.error_for(axis, "shutting down"))
                 else:
-                    cert = self.certify_axis(cloud, imaging, axis, dense_cloud, preview_every, previews, plans,
-                                             stamp_ns=int(stamp_ns))
+                    sizes = self.size_for(share) if budget > 0 and self.config.method != "cms" and self.costs.ready else None
+                    if sizes is not None and not sizes.fits:
+                        cert = self.error_for(axis, f"time budget: {share:.3g} s for this axis ({budget:g} s per frame) is less than "
+                                                    f"the least work takes here (one anchor, n = 1, {sizes.max_partitions} grid points: "
+                                                    f"about {sizes.predicted_s:.3g} s)")
+                    else:
+                        cert = self.certify_axis(cloud, imaging, axis, dense_cloud, preview_every, previews, plans,
+                                                 stamp_ns=int(stamp_ns), sizes=sizes)
                     cert.filled_points = int(cloud.filled)   # the statement is about the cloud with filled depth
+                    if sizes is not None:
+                        spent = time.perf_counter() - t1
+                        if sizes.fits:
+                            self.costs.observe(cert, spent, int(self.config.batch_size))
+                        self._record_budget(cert, sizes, budget, spent)
                     if audit and cert.status != "error" and axis in plans:
                         audit_certificate(cert, self.source_cloud(cloud, dense_cloud), imaging, plans[axis], device=self.device,
                                           num_anchors=self.config.num_anchors, audit_poses=self.config.audit_poses, log=self.log)
@@ -408,6 +492,20 @@ class FrameCertifier:
         timings["total"] = time.perf_counter() - t0
         return FrameResult(int(stamp_ns), frame_id or intr.frame_id, certs, plans,
                            imaging.camera if imaging is not None else None, timings, previews)
+
+    def _record_budget(self, cert: Certificate, sizes: Sizes, budget: float, spent: float) -> None:
+        """What the certificate rests on under a time budget: ``bounds["time_budget"]`` (the frame's budget, the
+        axis' share, the time spent, the sizes used and configured, the cost model they came from) and
+        ``timings["budget"]`` (the axis' share, seconds)."""
+        c = self.config
+        cert.timings["budget"] = float(sizes.share_s)
+        cert.bounds["time_budget"] = {
+            "frame_budget_s": float(budget), "share_s": float(sizes.share_s), "spent_s": float(spent),
+            "predicted_s": float(sizes.predicted_s), "reduced": bool(sizes.reduced), "fits": bool(sizes.fits),
+            "num_anchors": int(sizes.num_anchors), "n": int(sizes.n), "max_partitions": int(sizes.max_partitions),
+            "configured": {"num_anchors": int(c.num_anchors), "n": int(c.n), "max_partitions": int(c.max_partitions)},
+            "costs": {k: float(v) for k, v in self.costs.to_dict().items()},
+        }
 
 
 DEMO_RENDER_PIXELS = 320 * 180   # what the shipped defaults render (640x480 camera, 160x90 model, render_factor 2)

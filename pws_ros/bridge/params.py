@@ -133,6 +133,11 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("batch_size", 256, "images per classifier call", range=(1, 1_000_000), nodes=_CERT),
     ParamSpec("num_anchors", 24, "anchor frames for coverage=anchors (surfel imaging: the most anchors, i.e. a budget of "
               "n0 + num_anchors * n classifier calls per axis; a frame needing more gets a smaller radius)", range=(1, 100_000), nodes=_ANCHOR),
+    ParamSpec("time_budget_s", 0.0, "time budget per frame, split evenly over its axes: the certifier measures what a "
+              "classifier call and the geometry cost on this machine (a warm-up, then every axis) and sizes num_anchors, n and "
+              "max_partitions of each axis (never above the configured ones) before it draws any sample, so that the axis "
+              "finishes within its share; a frame that needs more gets a smaller radius, never more time; 0 = off (the "
+              "configured sizes)", range=(0.0, 86400.0), nodes=("pipeline",), unit="s"),
     ParamSpec("audit_every", 0, "self-audit every k-th frame: re-render poses inside every segment of each certified axis "
               "(audit_poses per segment) and check every bound the certificate used; a violation turns that axis to "
               "ERROR; 0 = off", range=(0, 1_000_000), nodes=_CERT),
@@ -168,6 +173,14 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("min_valid_depth", 0.1, "least share of an input frame's pixels with a valid depth (organized clouds, depth "
               "images); below it the frame is an ERROR (too little is measured to describe a scene)", range=(0.0, 1.0), nodes=_IN),
     ParamSpec("require_same_frame", True, "refuse depth and colour with different non-empty frame ids (not registered)", nodes=_IN),
+    ParamSpec("num_workers", 1, "pipeline processes sharing one input stream (launch: workers:=N starts them): each "
+              "certifies only the frames whose stamp is assigned to it (worker_period_s), with its own latest-only policy "
+              "and cores / num_workers torch threads; no coordinator", range=(1, 1024), read_only=True, nodes=("pipeline",)),
+    ParamSpec("worker_index", 0, "this pipeline's index among num_workers (0 .. num_workers - 1)", range=(0, 1023),
+              read_only=True, nodes=("pipeline",)),
+    ParamSpec("worker_period_s", 0.0, "how stamps are assigned to workers: 0 = a hash of the stamp (any camera rate); > 0 = "
+              "round robin on the camera period (stamp // period) mod num_workers; either way every stamp goes to exactly "
+              "one worker", range=(0.0, 3600.0), read_only=True, nodes=("pipeline",), unit="s"),
     ParamSpec("min_period_s", 0.0, "skip input frames closer than this to the last accepted one (0 = take every frame the worker can)",
               range=(0.0, 3600.0), nodes=_IN, unit="s"),
     # -- QoS --

@@ -163,6 +163,10 @@ def register(subparsers) -> None:
                         "render_factor, 2; 0 = the camera's full resolution, slower)")
     c.add_argument("--anchors", type=int, default=None,
                    help="most anchors per axis (budget n0 + anchors * n classifier calls; default: config num_anchors, 24)")
+    c.add_argument("--time-budget", type=float, default=None, metavar="S",
+                   help="seconds per frame, split evenly over its axes: num_anchors, n and max_partitions of each axis are "
+                        "sized from the measured cost of a classifier call and of the geometry before any sample is drawn; "
+                        "a frame that needs more gets a smaller radius (default: config time_budget_s, 0 = off)")
     c.add_argument("--audit-every", type=int, default=None,
                    help="self-audit every k-th frame: re-render poses in every segment and check every bound; a "
                         "violation turns the axis to ERROR (default: config audit_every, 0 = off)")
@@ -213,7 +217,7 @@ def build_config(args: argparse.Namespace):
               "sync_max_skew": "sync_max_skew_s",
               "preview_every": "preview_every", "max_partitions": "max_partitions",
               "min_partitions": "min_partitions", "imaging": "imaging", "border": "border", "render_factor": "render_factor", "anchors": "num_anchors",
-              "audit_every": "audit_every"}
+              "audit_every": "audit_every", "time_budget": "time_budget_s"}
     for attr, name in simple.items():
         v = getattr(args, attr, None)
         if v is not None:

@@ -1,0 +1,197 @@
+"""A time budget per frame (``time_budget_s``): the work of each axis sized from measured costs.
+
+The certifier keeps a :class:`CostModel` of this machine: what a classifier batch and an image cost
+(noise, denoiser and classifier, as :class:`~pws_ros.core.smoothing.SmoothedClassifier` spends them),
+what the geometry costs per grid point (rendering, the per-segment bounds, the anchor placement) and
+what an axis costs whatever its size (planning, set-up). It is measured by a warm-up (the classifier at
+start, the geometry on the first frame) and updated after every axis from the certificate's own
+timings (an exponential moving average, :data:`EMA_WEIGHT`).
+
+Before an axis runs, :func:`size_axis` turns the axis' share of the frame's budget into the three
+sizes that bound its work: ``num_anchors`` and ``n`` (at most ``n0 + num_anchors * n`` classifier
+calls, whichever way the core spends them: anchors sharing their noise, or the weak-frame branch's
+``num_anchors * n`` samples at the centre) and ``max_partitions`` (the grid the geometry renders and
+bounds). The configured sizes are kept when they fit; otherwise all three shrink together (the
+anchors with the square root of the factor, n with the rest), the largest that fits, found by
+bisection on the cost model. A frame that needs more work than fits gets a smaller radius, never more
+time; when even the least work (one anchor, n = 1, 3 grid points) does not fit, the axis is not
+started (an ERROR certificate naming the budget).
+
+Why the statistics stay valid: the sizes are a function of the budget and the machine's measured
+timings only, fixed before the axis draws any sample, so they are independent of the axis' noise.
+Clopper-Pearson and the Bonferroni split hold conditionally on them, exactly as for sizes written in
+the configuration. Sampling never stops early because time runs out (a stopping rule that would look
+at the counts).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from ..core.coverage import FRONTIER_PARTS, FRONTIER_ROUNDS
+
+SAFETY = 0.85          # the work of an axis is sized for this fraction of its share (the cost model is an estimate)
+EMA_WEIGHT = 0.3       # weight of the newest observation in the cost model's moving averages
+MIN_POINTS = 3         # the smallest grid: -b, 0, +b
+FRONTIER_POINTS = 2 * FRONTIER_ROUNDS * (FRONTIER_PARTS - 1)   # points the frontier refinement may add to a grid
+WARMUP_POINTS = 9      # grid points of the geometry warm-up on the first frame
+
+
+@dataclass
+class CostModel:
+    """Seconds per unit of work on this machine (NaN until measured)."""
+
+    batch_s: float = math.nan    # one classifier call, whatever its size (noise buffer, launch, synchronisation)
+    image_s: float = math.nan    # one image of a call (noise, denoiser, classifier)
+    point_s: float = math.nan    # one grid point: its frame rendered, its segment bounded, distance rows to anchors
+    fixed_s: float = math.nan    # one axis whatever its sizes (planning, renderer set-up, previews)
+    updates: int = 0             # observations folded in after the warm-up
+
+    @property
+    def ready(self) -> bool:
+        return all(math.isfinite(v) for v in (self.batch_s, self.image_s, self.point_s, self.fixed_s))
+
+    # ---- predictions ----
+    def batches(self, n0: int, anchors: int, n: int, batch_size: int) -> int:
+        """The most classifier calls of an axis: the selection (``n0`` samples of one frame), then either
+        ``anchors`` frames sharing ``n`` noise draws a batch at a time, or the weak-frame branch's
+        ``anchors * n`` samples of the centre (fewer calls)."""
+        bs = max(1, int(batch_size))
+        return math.ceil(n0 / bs) + int(anchors) * math.ceil(n / bs)
+
+    def inference_s(self, n0: int, anchors: int, n: int, batch_size: int) -> float:
+        return self.batch_s * self.batches(n0, anchors, n, batch_size) + self.image_s * (n0 + anchors * n)
+
+    def geometry_s(self, points: int) -> float:
+        return self.point_s * (int(points) + FRONTIER_POINTS)
+
+    def axis_s(self, n0: int, anchors: int, n: int, points: int, batch_size: int) -> float:
+        return self.fixed_s + self.inference_s(n0, anchors, n, batch_size) + self.geometry_s(points)
+
+    # ---- measurements ----
+    def set_inference(self, t_one: float, t_full: float, batch_size: int) -> None:
+        """From the time of a call with 1 image and one with ``batch_size`` images."""
+        bs = max(1, int(batch_size))
+        image = max(0.0, (t_full - t_one) / (bs - 1)) if bs > 1 else 0.0
+        if bs == 1 or image == 0.0:
+            image = t_full / bs
+        self.image_s = image
+        self.batch_s = max(0.0, t_one - image)
+
+    def set_geometry(self, fixed_s: float, point_s: float) -> None:
+        self.fixed_s, self.point_s = max(0.0, fixed_s), max(0.0, point_s)
+
+    def observe(self, cert: Any, wall_s: float, batch_size: int) -> None:
+        """Fold in one axis' certificate (its timings, calls and grid) and its wall time in the engine."""
+        t = getattr(cert, "timings", None) or {}
+        calls = int(getattr(cert, "classifier_calls", 0) or 0)
+        if not self.ready or calls <= 0 or "inference" not in t:
+            return
+        w = EMA_WEIGHT
+        n0 = int(cert.n0)
+        est = calls - n0
+        anchors = max(1, int(getattr(cert, "num_bounds", 0) or 0))   # the p_A bounds estimated: anchors (or frames)
+        per = max(1, est // anchors) if anchors > 1 else max(1, est)
+        predicted = self.inference_s(n0, anchors, per, batch_size) if est > 0 else self.inference_s(n0, 0, 1, batch_size)
+        if predicted > 0 and math.isfinite(float(t["inference"])):
+            r = (1 - w) + w * float(t["inference"]) / predicted
+            self.batch_s *= r
+            self.image_s *= r
+        geometry = sum(float(t.get(k, 0.0)) for k in ("render", "bounds", "statistics"))
+        points = int(getattr(cert, "frames_rendered", 0) or 0) + int((cert.bounds or {}).get("frontier_splits", 0) or 0)
+        if points > 0:
+            self.point_s = (1 - w) * self.point_s + w * geometry / points
+        fixed = float(wall_s) - float(t["inference"]) - geometry
+        self.fixed_s = (1 - w) * self.fixed_s + w * max(0.0, fixed)
+        self.updates += 1
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class Sizes:
+    """The work of one axis under a budget."""
+
+    num_anchors: int
+    n: int
+    max_partitions: int
+    share_s: float          # the axis' share of the frame's budget
+    predicted_s: float      # what the cost model predicts for these sizes (at most SAFETY * share_s when fits)
+    reduced: bool           # smaller than configured
+    fits: bool              # False: even the least work is predicted above the share (the axis is not started)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def size_axis(share_s: float, costs: CostModel, *, n0: int, n: int, num_anchors: int, max_partitions: int,
+              batch_size: int, per_point: bool = False, safety: float = SAFETY) -> Sizes:
+    """The largest sizes (configured ones at most) whose predicted time is within ``safety * share_s``.
+
+    ``per_point``: p_A is estimated at every grid frame (coverage pairwise or paper), so the estimated
+    frames are the grid points, not ``num_anchors``. A function of the budget, the configuration and
+    ``costs`` only (nothing about the frame's samples)."""
+    target = safety * float(share_s)
+    P0 = max(MIN_POINTS, int(max_partitions))
+    A0, N0 = max(1, int(num_anchors)), max(1, int(n))
+
+    def at(s: float) -> tuple[int, int, int]:
+        if s >= 1.0:
+            return A0, N0, P0
+        p = min(P0, max(MIN_POINTS, int(math.floor(s * P0))))
+        if per_point:
+            return A0, min(N0, max(1, int(math.floor(s * N0)))), p
+        a = min(A0, max(1, int(math.floor(A0 * math.sqrt(s)))))
+        nn = min(N0, max(1, int(math.floor(s * A0 * N0 / a))))
+        return a, nn, p
+
+    def cost(sz: tuple[int, int, int]) -> float:
+        return costs.axis_s(int(n0), sz[2] if per_point else sz[0], sz[1], sz[2], batch_size)
+
+    full = at(1.0)
+    if cost(full) <= target:
+        return Sizes(*full, float(share_s), cost(full), False, True)
+    least = at(0.0)
+    if cost(least) > target:
+        return Sizes(*least, float(share_s), cost(least), True, False)
+    lo, hi = 0.0, 1.0
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        if cost(at(mid)) <= target:
+            lo = mid
+        else:
+            hi = mid
+    best = at(lo)
+    return Sizes(*best, float(share_s), cost(best), True, True)
+
+
+def measure_inference(model: Any, shape: tuple[int, int], batch_size: int, sigma: float,
+                      denoiser: Any = None, repeats: int = 2) -> tuple[float, float]:
+    """(seconds of a call with 1 image, seconds of a call with ``batch_size`` images), through
+    :class:`~pws_ros.core.smoothing.SmoothedClassifier` (noise + denoiser + classifier); the first call
+    (lazy initialisation, JIT) is not counted, the mean of ``repeats`` is."""
+    import torch
+
+    from ..core.smoothing import SmoothedClassifier
+
+    h, w = int(shape[0]), int(shape[1])
+    sc = SmoothedClassifier(model, sigma, batch_size=int(batch_size), seed=0, denoiser=denoiser)
+    frame = torch.full((1, h, w, 3), 0.5)
+    sc.sample_counts(frame, 1)   # warm: lazy initialisation is not a cost per call
+
+    def timed(k: int) -> float:
+        total = 0.0
+        for _ in range(max(1, repeats)):
+            t0 = time.perf_counter()
+            sc.sample_counts(frame, k)
+            total += time.perf_counter() - t0
+        return total / max(1, repeats)
+
+    return timed(1), timed(int(batch_size))
+
+
+__all__ = ["CostModel", "EMA_WEIGHT", "FRONTIER_POINTS", "MIN_POINTS", "SAFETY", "Sizes", "WARMUP_POINTS", "measure_inference",
+           "size_axis"]

@@ -1,0 +1,215 @@
+"""A time budget per frame (pws_ros.bridge.budget, FrameCertifier with time_budget_s): the sizing
+arithmetic (never above the share given the cost model, never above the configured sizes, a function of
+the budget and the measured costs only), the sizes fixed before any sample is drawn, 0 = off and a budget
+that fits leave certificates unchanged, and a deliberately slow classifier keeps a frame within its budget."""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from pws_ros.bridge import budget as B
+from pws_ros.bridge.config import config_from_params
+from pws_ros.bridge.engine import FrameCertifier
+from pws_ros.core.cloud import cloud_from_rgbd
+from pws_ros.core.model import LoadedModel
+
+CONF = dict(n0=64, n=256, num_anchors=24, max_partitions=257, batch_size=64)
+
+
+def costs(batch=0.01, image=1e-4, point=0.02, fixed=0.05) -> B.CostModel:
+    return B.CostModel(batch_s=batch, image_s=image, point_s=point, fixed_s=fixed)
+
+
+def predicted(c: B.CostModel, s: B.Sizes, per_point=False) -> float:
+    anchors = s.max_partitions if per_point else s.num_anchors
+    return c.axis_s(CONF["n0"], anchors, s.n, s.max_partitions, CONF["batch_size"])
+
+
+def test_a_share_that_fits_keeps_the_configured_sizes():
+    c = costs()
+    full = predicted(c, B.Sizes(24, 256, 257, 0, 0, False, True))
+    s = B.size_axis(full / B.SAFETY + 1e-9, c, **CONF)
+    assert (s.num_anchors, s.n, s.max_partitions, s.reduced, s.fits) == (24, 256, 257, False, True)
+    s = B.size_axis(full / B.SAFETY * 0.99, c, **CONF)   # just below: reduced
+    assert s.reduced and s.fits and predicted(c, s) <= B.SAFETY * s.share_s
+
+
+@pytest.mark.parametrize("per_point", [False, True])
+def test_sizes_never_exceed_the_share_nor_the_configuration(per_point):
+    rng = np.random.default_rng(0)
+    fitted = 0
+    for _ in range(300):
+        c = costs(*(10.0 ** rng.uniform(-5, -1, 4)))
+        conf = dict(n0=int(rng.integers(1, 200)), n=int(rng.integers(1, 2000)), num_anchors=int(rng.integers(1, 40)),
+                    max_partitions=int(rng.integers(3, 400)), batch_size=int(rng.integers(1, 512)))
+        share = float(10.0 ** rng.uniform(-2, 2))
+        s = B.size_axis(share, c, per_point=per_point, **conf)
+        assert 1 <= s.num_anchors <= conf["num_anchors"] and 1 <= s.n <= conf["n"]
+        assert B.MIN_POINTS <= s.max_partitions <= max(B.MIN_POINTS, conf["max_partitions"])
+        anchors = s.max_partitions if per_point else s.num_anchors
+        cost = c.axis_s(conf["n0"], anchors, s.n, s.max_partitions, conf["batch_size"])
+        assert cost == pytest.approx(s.predicted_s)
+        if s.fits:
+            fitted += 1
+            assert cost <= B.SAFETY * share * (1 + 1e-12)
+        else:  # even the least work is above the share: the axis is not started
+            least_anchors = conf["num_anchors"] if per_point else 1   # per_point: the grid frames are the estimates
+            assert (s.num_anchors, s.n, s.max_partitions) == (least_anchors, 1, B.MIN_POINTS) and cost > B.SAFETY * share
+        assert B.size_axis(share, c, per_point=per_point, **conf) == s   # a function of its arguments only
+    assert 30 < fitted < 300
+
+
+def test_a_smaller_share_never_buys_more_work():
+    c = costs()
+    prev = None
+    for share in np.geomspace(20.0, 0.5, 40):
+        s = B.size_axis(float(share), c, **CONF)
+        work = s.num_anchors * s.n
+        if prev is not None:
+            assert work <= prev[0] and s.max_partitions <= prev[1]
+        prev = (work, s.max_partitions)
+    assert prev[0] < 24 * 256 and prev[1] < 257
+
+
+def test_the_call_count_bounds_the_weak_frame_branch():
+    # the weak-frame branch spends num_anchors * n samples of one frame: never more calls than the anchors' sharing
+    c = B.CostModel()
+    for bs in (1, 7, 64, 256, 1000):
+        for a in (1, 3, 24):
+            for n in (1, 50, 256, 999):
+                assert math.ceil(a * n / bs) <= c.batches(0, a, n, bs) - 0
+
+
+def test_the_cost_model_moves_towards_what_it_observes():
+    c = costs(batch=0.01, image=1e-3, point=0.02, fixed=0.1)
+
+    class Cert:
+        n0, num_bounds, classifier_calls, frames_rendered = 64, 4, 64 + 4 * 256, 40
+        bounds = {"frontier_splits": 0}
+        timings = {"inference": 0.0, "render": 0.1, "bounds": 0.1, "statistics": 0.0}
+
+    Cert.timings["inference"] = 0.5 * c.inference_s(64, 4, 256, 64)   # twice as fast as predicted
+    before = c.to_dict()
+    c.observe(Cert, wall_s=0.2 + Cert.timings["inference"] + 0.3, batch_size=64)
+    assert c.image_s < before["image_s"] and c.batch_s < before["batch_s"]
+    assert c.point_s == pytest.approx((1 - B.EMA_WEIGHT) * 0.02 + B.EMA_WEIGHT * 0.2 / 40)
+    assert c.fixed_s == pytest.approx((1 - B.EMA_WEIGHT) * 0.1 + B.EMA_WEIGHT * 0.3)
+    assert c.updates == 1
+
+
+# ---- the engine ---------------------------------------------------------------------------
+
+def box_scene(intr, seed=0):
+    h, w = intr.height, intr.width
+    depth = np.full((h, w), 2.0)
+    depth[h // 4: 3 * h // 4, w // 4: 5 * w // 8] = 1.2
+    rgb = np.random.default_rng(seed).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    rgb[..., 0] = 230
+    return cloud_from_rgbd(depth, rgb, intr)
+
+
+FAST = {"n0": 16, "n": 32, "batch_size": 64, "axes": ["tz", "ry"]}
+
+
+def test_zero_is_off_and_a_budget_that_fits_changes_no_certificate(make_model_file, small_camera):
+    path = str(make_model_file(input_size=(24, 32)))
+    cloud = box_scene(small_camera)
+    off = FrameCertifier(config_from_params({**FAST, "model_path": path}), log=lambda *a: None)
+    ample = FrameCertifier(config_from_params({**FAST, "model_path": path, "time_budget_s": 3600.0}), log=lambda *a: None)
+    for stamp in (5, 6):
+        a = off.process(cloud, small_camera, stamp).certificates
+        b = ample.process(cloud, small_camera, stamp).certificates
+        for x, y in zip(a, b):
+            assert x.status != "error", x.reason
+            assert "time_budget" not in x.bounds and "budget" not in x.timings
+            tb = y.bounds["time_budget"]
+            assert tb["reduced"] is False and (tb["num_anchors"], tb["n"]) == (24, 32) and tb["frame_budget_s"] == 3600.0
+            assert 0 < tb["spent_s"] < tb["share_s"] and y.timings["budget"] == tb["share_s"]
+            assert (x.p_a_lower, x.radius, x.label, x.n, x.classifier_calls, x.num_partitions) == \
+                   (y.p_a_lower, y.radius, y.label, y.n, y.classifier_calls, y.num_partitions)
+    assert ample.costs.ready and ample.costs.updates == 4
+
+
+def test_sizes_are_fixed_before_any_sample_is_drawn(make_model_file, small_camera, monkeypatch):
+    from pws_ros.core import smoothing
+
+    path = str(make_model_file(input_size=(24, 32)))
+    eng = FrameCertifier(config_from_params({"n0": 16, "n": 100_000, "batch_size": 64, "axes": ["tz", "ry"], "model_path": path,
+                                             "time_budget_s": 4.0}), log=lambda *a: None)
+    eng.costs = costs(batch=1e-3, image=3e-4, point=0.02, fixed=0.1)   # a known (slowish) machine
+    eng._geometry_warm = True
+    events = []
+    size_for = eng.size_for
+
+    def sized(share):
+        s = size_for(share)
+        events.append(("sized", s))
+        return s
+
+    real = smoothing.SmoothedClassifier.sample_counts
+
+    def counted(self, frames, num, *a, **k):
+        events.append(("sample", int(num)))
+        return real(self, frames, num, *a, **k)
+
+    monkeypatch.setattr(eng, "size_for", sized)
+    monkeypatch.setattr(smoothing.SmoothedClassifier, "sample_counts", counted)
+    res = eng.process(box_scene(small_camera), small_camera, 7)
+    kinds = [e[0] for e in events]
+    assert kinds[0] == "sized" and kinds.count("sized") == 2
+    second = kinds.index("sized", 1)
+    for (start, stop), cert in zip(((0, second), (second, len(events))), res.certificates):
+        s = events[start][1]
+        assert s.reduced and s.n < 100_000 and cert.status != "error", cert.reason
+        samples = [e[1] for e in events[start + 1:stop]]
+        assert samples[0] == 16 and all(k <= s.num_anchors * s.n for k in samples[1:])   # n0, then the sized n
+        assert cert.n in (s.n, s.n * s.num_anchors) and cert.bounds["time_budget"]["n"] == s.n
+
+
+class SlowNet(torch.nn.Module):
+    """MeanThresholdNet on the red channel that sleeps ``delay`` seconds per call (a slow classifier)."""
+
+    def __init__(self, delay: float):
+        super().__init__()
+        self.delay = delay
+
+    def forward(self, x):
+        time.sleep(self.delay)
+        m = x[:, 0].mean(dim=(1, 2))
+        return torch.stack([0.5 - m, m - 0.5], dim=1)
+
+
+def test_a_slow_classifier_keeps_each_frame_within_its_budget(small_camera):
+    model = LoadedModel(SlowNet(0.05), ["c0", "c1"], (24, 32), "slow")   # time mostly asleep: robust to a busy machine
+    budget = 3.0
+    cfg = config_from_params({"n0": 64, "n": 256, "batch_size": 64, "axes": ["tz", "ry"], "time_budget_s": budget})
+    eng = FrameCertifier(cfg, log=lambda *a: None, model=model)
+    # the configured work: 64 + 24 * 256 samples = 97 calls per axis, about 5 s of sleep alone on each axis
+    assert eng.costs.inference_s(64, 24, 256, 64) > budget   # measured by the warm-up at start
+    cloud = box_scene(small_camera)
+    for stamp in range(3):
+        t0 = time.perf_counter()
+        res = eng.process(cloud, small_camera, stamp)
+        wall = time.perf_counter() - t0
+        assert wall <= 1.1 * budget, (wall, [c.bounds.get("time_budget") for c in res.certificates])
+        for c in res.certificates:
+            tb = c.bounds["time_budget"]
+            assert c.status != "error", c.reason
+            assert tb["reduced"] and tb["num_anchors"] * tb["n"] < 24 * 256 and c.classifier_calls <= 64 + tb["num_anchors"] * tb["n"]
+        assert sum(c.bounds["time_budget"]["share_s"] for c in res.certificates) <= budget
+    assert any(c.radius > 0 for c in res.certificates)
+
+
+def test_a_budget_below_the_least_work_is_an_error_not_an_overrun(small_camera):
+    model = LoadedModel(SlowNet(0.05), ["c0", "c1"], (24, 32), "slow")
+    eng = FrameCertifier(config_from_params({"n0": 64, "n": 256, "batch_size": 64, "axes": ["tz"], "time_budget_s": 0.05}),
+                         log=lambda *a: None, model=model)
+    t0 = time.perf_counter()
+    (c,) = eng.process(box_scene(small_camera), small_camera, 1).certificates
+    assert c.status == "error" and "time budget" in c.reason and c.radius == 0 and c.classifier_calls == 0
+    assert c.bounds["time_budget"]["fits"] is False
+    assert time.perf_counter() - t0 < 2.0   # the warm-up only (nothing is sampled)
