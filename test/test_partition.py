@@ -438,3 +438,17 @@ def test_min_partitions_refines_a_coarse_plan():
     for bad in (-1, 2.5):
         with pytest.raises(PwsError):
             plan_partitions(cloud, CAM, "ry", radius, "pws_of", min_partitions=bad)
+
+
+def test_plan_step_tz_with_no_point_near_the_view_is_a_plan_not_a_crash():
+    """A cloud whose points all lie far outside the view (seen live: a big-endian PointCloud2 read
+    little-endian) left nothing to take the nearest depth of; the check's message was built anyway and
+    raised ValueError (zero-size minimum). Now the plan is made (nothing moves in the view)."""
+    from pws_ros.core.camera import CameraIntrinsics
+    from pws_ros.core.cloud import Cloud
+    from pws_ros.core.partition import plan_step
+
+    cam = CameraIntrinsics(32, 24, 30.0, 30.0, 15.5, 11.5)
+    cloud = Cloud(np.array([[100.0, 0.0, 1.0], [-80.0, 50.0, 2.0]]), np.full((2, 3), 0.5))
+    plan = plan_step(cloud, cam, "tz", 0.01)
+    assert plan.alphas[0] == -0.01 and plan.alphas[-1] == 0.01 and 0.0 in plan.alphas

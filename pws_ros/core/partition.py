@@ -348,9 +348,9 @@ def plan_step(cloud: Cloud, intr: CameraIntrinsics, axis: str, radius: float, me
     near = (u > -0.5 * intr.width) & (u < 1.5 * intr.width) & (v > -0.5 * intr.height) & (v < 1.5 * intr.height)
     pts = pts[near]
     details: dict[str, Any] = {"rule": "step", "imaging": "surfel", "step_px": float(step_px), "cloud_points": int(len(pts))}
-    if axis == "tz":
-        require(len(pts) == 0 or float(pts[:, 2].min()) > radius,
-                f"tz radius {radius:g} m reaches the nearest point of the cloud ({float(pts[:, 2].min()):.3g} m)")
+    if axis == "tz" and len(pts):   # (the message only where it is needed: an empty cloud has no nearest point)
+        nearest = float(pts[:, 2].min())
+        require(nearest > radius, f"tz radius {radius:g} m reaches the nearest point of the cloud ({nearest:.3g} m)")
     L = float(lipschitz_constant(pts, intr, axis, -radius, radius).max()) if len(pts) else 0.0
     details["max_speed_px"] = L
     delta_alpha = radius if L <= 0 or not math.isfinite(L) else min(radius, step_px / L)
