@@ -41,8 +41,9 @@ DRY_RUN_SIZE = (32, 32)
 
 
 @contextmanager
-def _quiet_jit() -> Iterator[None]:
-    """TorchScript still works in torch 2.x but warns that it is deprecated on every call."""
+def quiet_jit() -> Iterator[None]:
+    """TorchScript still works in torch 2.x but warns that it is deprecated on every call: this silences
+    those warnings (here and in :mod:`pws_ros.finetune`)."""
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", category=DeprecationWarning, module=r"torch\.jit.*")
         warnings.filterwarnings("ignore", message=r".*torch\.jit.*deprecated.*")
@@ -168,7 +169,7 @@ def _load_script(path: Path, device: torch.device, what: str) -> tuple[Any, dict
     require(path.is_file(), f"{what} path is not a file: {path}")
     extra = {META_FILE: ""}
     try:
-        with _quiet_jit():
+        with quiet_jit():
             module = torch.jit.load(str(path), map_location=device, _extra_files=extra)
     except Exception as exc:
         raise PwsError(f"{what} {path} is not a TorchScript archive ({_first_line(exc)[:120]}); "
@@ -235,7 +236,7 @@ def load_model(path: str | Path, classes: str | Path | Sequence[str] | None = No
     size = input_size or DRY_RUN_SIZE
     x = torch.zeros((1, 3) + tuple(size), dtype=torch.float32, device=dev)
     try:
-        with torch.no_grad(), _quiet_jit():
+        with torch.no_grad(), quiet_jit():
             out = module(x)
     except Exception as exc:
         if input_size is not None:
@@ -291,7 +292,7 @@ def save_model(module: torch.nn.Module, path: str | Path, class_names: Sequence[
     if isinstance(module, torch.nn.Module):
         module.eval()
     example = torch.zeros((1, 3) + tuple(input_size or DRY_RUN_SIZE), dtype=torch.float32, device=_module_device(module))
-    with _quiet_jit():
+    with quiet_jit():
         if isinstance(module, torch.jit.ScriptModule):
             scripted = module
         else:
@@ -413,7 +414,7 @@ def load_denoiser(path: str | Path, device: str | torch.device | None = "cpu") -
     size = _meta_input_size(meta, f"denoiser {path}") or DRY_RUN_SIZE
     x = torch.zeros((1, 3) + tuple(size), dtype=torch.float32, device=dev)
     try:
-        with torch.no_grad(), _quiet_jit():
+        with torch.no_grad(), quiet_jit():
             out = module(x)
     except Exception:
         return den  # size rejected: checked at the first call
@@ -423,4 +424,4 @@ def load_denoiser(path: str | Path, device: str | torch.device | None = "cpu") -
 
 
 __all__ = ["IMAGENET_MEAN", "IMAGENET_STD", "META_FILE", "LoadedDenoiser", "LoadedModel", "Normalized", "export_model",
-           "find_class_file", "load_denoiser", "load_model", "read_class_file", "save_model", "sidecar_path"]
+           "find_class_file", "load_denoiser", "load_model", "quiet_jit", "read_class_file", "save_model", "sidecar_path"]

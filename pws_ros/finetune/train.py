@@ -10,10 +10,8 @@ from __future__ import annotations
 import math
 import os
 import time
-import warnings
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -21,18 +19,11 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from ..core.errors import PwsError, require
+from ..core.model import quiet_jit
 from .cache import RecordingCache, derive
 
 CHECKPOINT_FORMAT = "pws_ros-finetune-checkpoint-1"
 _PERM, _NOISE, _STEP = 11, 12, 13   # seed tags
-
-
-@contextmanager
-def quiet_jit() -> Iterator[None]:
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", category=DeprecationWarning, module=r"torch\.jit.*")
-        warnings.filterwarnings("ignore", message=r".*torch\.jit.*deprecated.*")
-        yield
 
 
 def load_script(path: Path, device: torch.device) -> Any:
