@@ -2,7 +2,7 @@
 
 Every rule reads the same two things: the Cohen radii ``R`` of the p_A lower bounds it estimated (one
 per *estimation frame*, all at the Bonferroni level ``alpha / K`` with ``K`` = the number of those frames)
-and sound per-segment distance bounds of the imaging model (:class:`.imaging.HullValues`,
+and sound per-segment distance bounds of the imaging model (:class:`.surfel_bounds.HullValues`,
 :class:`.bounds.SegmentValues`). Segment ``i`` joins grid points ``i`` and ``i + 1``; the centre
 ``alphas[centre]`` is 0. A rule returns which segments it covers; the radius is the symmetric run of
 covered segments around 0 (:func:`symmetric_reach` on a grid symmetric about 0, :func:`covered_radius`
@@ -175,7 +175,7 @@ def frontier_reach(covers: Callable[[np.ndarray], np.ndarray], alphas: np.ndarra
 def segment_covers(hulls: Callable[[np.ndarray], object], anchor_frames: np.ndarray, R: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """``covers(g)`` for :func:`frontier_reach`: per segment of the grid ``g``, whether some anchor ``k`` has
     ``D_i(x_k)^2 < R_k^2`` on the bounds ``hulls(g)`` (an object with ``dist_sq(y)`` per segment, e.g.
-    :class:`.imaging.HullValues`)."""
+    :class:`.surfel_bounds.HullValues`)."""
     R2 = np.asarray(R, dtype=np.float64) ** 2
 
     def covers(g: np.ndarray) -> np.ndarray:
@@ -189,16 +189,21 @@ def segment_covers(hulls: Callable[[np.ndarray], object], anchor_frames: np.ndar
     return covers
 
 
-@dataclass(frozen=True)
-class PaperRule:
-    """The paper's rule (module doc). ``covered_count`` = 2 j segments."""
+class _EveryFrame:
+    """A rule with a p_A bound at every frame of the plan (``K = N``), read with the pair bounds."""
 
-    name = "paper"
     uses_anchor_distances = False
     adaptive = False
 
     def estimation_indices(self, num_partitions: int) -> np.ndarray:
         return np.arange(num_partitions)
+
+
+@dataclass(frozen=True)
+class PaperRule(_EveryFrame):
+    """The paper's rule (module doc). ``covered_count`` = 2 j segments."""
+
+    name = "paper"
 
     def reach(self, R: np.ndarray, centre: int, *, pair_bound_sq: np.ndarray, anchor_dist_sq=None) -> tuple[int, int]:
         """(``j``: segments ``centre-j .. centre+j-1`` covered, segments covered)."""
@@ -207,15 +212,10 @@ class PaperRule:
 
 
 @dataclass(frozen=True)
-class PairwiseRule:
+class PairwiseRule(_EveryFrame):
     """Segment ``i`` covered when ``B_i < R_i^2 + R_{i+1}^2`` (module doc)."""
 
     name = "pairwise"
-    uses_anchor_distances = False
-    adaptive = False
-
-    def estimation_indices(self, num_partitions: int) -> np.ndarray:
-        return np.arange(num_partitions)
 
     def covered(self, R: np.ndarray, *, pair_bound_sq: np.ndarray, anchor_dist_sq=None) -> np.ndarray:
         return np.asarray(pair_bound_sq) < R[:-1] ** 2 + R[1:] ** 2
