@@ -4,12 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
-from typing import Any
-
-from ..core.errors import require
 
 DESCRIPTION = """\
 Randomized smoothing certifies a classifier that keeps its answer under Gaussian noise of the sigma
@@ -125,32 +121,20 @@ def register(subparsers) -> None:
 
 
 def options_from_args(args: argparse.Namespace):
-    from ..bridge.params import validate_param
     from ..finetune import FinetuneOptions
     from ..replay.options import load_replay_config, override_config
-    from .replay import parse_radius
+    from .replay import axes_radius_params, input_topics, progress_interval
 
     cfg = load_replay_config(args.config)
-    params: dict[str, Any] = {}
-    if args.axes:
-        params["axes"] = validate_param("axes", args.axes)
-    axes = params.get("axes", cfg.axes)
-    if args.radius:
-        for axis, v in parse_radius(args.radius, axes).items():
-            params[f"radius.{axis}"] = v
+    params = axes_radius_params(args, cfg)
     for attr, name in (("imaging", "imaging"), ("render_factor", "render_factor"), ("border", "border"),
                        ("sync_tolerance", "sync_tolerance_s"), ("sync_max_skew", "sync_max_skew_s")):
         v = getattr(args, attr)
         if v is not None:
             params[name] = v
     cfg = override_config(cfg, params)
-    topics = {"cloud": args.cloud_topic, "depth": args.depth_topic, "color": args.color_topic, "info": args.info_topic,
-              "depth_info": args.depth_info_topic, "truth": args.truth_topic}
-    interval = {}
-    if args.progress_interval is not None:
-        require(math.isfinite(args.progress_interval) and args.progress_interval >= 0,
-                f"--progress-interval must be >= 0 seconds, got {args.progress_interval}")
-        interval["progress_interval_s"] = args.progress_interval
+    topics = input_topics(args)
+    interval = progress_interval(args)
     return FinetuneOptions(
         bags=[Path(b) for b in args.bags], model=Path(args.model), out=Path(args.out), config=cfg, sigma=args.sigma,
         mode=args.mode, targets=args.targets, use_truth=not args.no_truth, holdout=args.holdout, views=args.views,
@@ -158,7 +142,7 @@ def options_from_args(args: argparse.Namespace):
         weight_decay=args.weight_decay, mse_weight=args.mse_weight, denoiser_channels=args.denoiser_channels,
         denoiser_depth=args.denoiser_depth, init_denoiser=Path(args.init_denoiser) if args.init_denoiser else None,
         eval_samples=args.eval_samples, seed=args.seed, device=args.device,
-        topics={k: v for k, v in topics.items() if v or (k == "depth_info" and v == "")},
+        topics=topics,
         classes=Path(args.classes) if args.classes else None, work_dir=Path(args.work_dir) if args.work_dir else None,
         resume=args.resume, overwrite=args.overwrite, checkpoint_every_s=args.checkpoint_every, keep_work=args.keep_work,
         quiet=args.quiet, **interval)

@@ -108,6 +108,38 @@ def parse_radius(text: str, axes: list[str] | tuple[str, ...]) -> dict[str, floa
     return out
 
 
+def axes_radius_params(args: argparse.Namespace, cfg) -> dict[str, Any]:
+    """The parameters ``--axes`` and ``--radius`` set over the configuration ``cfg`` (a bare radius needs
+    one axis: of ``--axes`` when given, else of ``cfg``); ``pws finetune`` reads them the same way."""
+    from ..bridge.params import validate_param
+
+    params: dict[str, Any] = {}
+    if args.axes:
+        params["axes"] = validate_param("axes", args.axes)
+    axes = params.get("axes", cfg.axes)
+    if args.radius:
+        for axis, v in parse_radius(args.radius, axes).items():
+            params[f"radius.{axis}"] = v
+    return params
+
+
+def input_topics(args: argparse.Namespace) -> dict[str, str]:
+    """The input topics named by the ``--*-topic`` options (``--depth-info-topic ""`` is kept: no check)."""
+    topics = {"cloud": args.cloud_topic, "depth": args.depth_topic, "color": args.color_topic, "info": args.info_topic,
+              "depth_info": args.depth_info_topic, "truth": args.truth_topic}
+    return {k: v for k, v in topics.items() if v or (k == "depth_info" and v == "")}
+
+
+def progress_interval(args: argparse.Namespace) -> dict[str, float]:
+    """``{"progress_interval_s": s}`` when ``--progress-interval`` is given (checked), else nothing."""
+    interval = {}
+    if args.progress_interval is not None:
+        require(math.isfinite(args.progress_interval) and args.progress_interval >= 0,
+                f"--progress-interval must be >= 0 seconds, got {args.progress_interval}")
+        interval["progress_interval_s"] = args.progress_interval
+    return interval
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser("replay", help="certify a rosbag2 recording offline; write the results as a bag + report",
                               description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -200,17 +232,10 @@ def register(subparsers) -> None:
 
 def build_config(args: argparse.Namespace):
     """The PwsConfig of the command line: --config (or config/pws.yaml) then the options."""
-    from ..bridge.params import validate_param
     from ..replay.options import load_replay_config, override_config
 
     cfg = load_replay_config(args.config)
-    params: dict[str, Any] = {}
-    if args.axes:
-        params["axes"] = validate_param("axes", args.axes)
-    axes = params.get("axes", cfg.axes)
-    if args.radius:
-        for axis, v in parse_radius(args.radius, axes).items():
-            params[f"radius.{axis}"] = v
+    params = axes_radius_params(args, cfg)
     simple = {"method": "method", "coverage": "coverage", "n0": "n0", "n": "n", "sigma": "sigma", "alpha": "alpha", "seed": "seed",
               "device": "device", "batch_size": "batch_size", "model": "model_path", "classes": "classes_path",
               "denoiser": "denoiser_path", "dense_cloud": "dense_cloud_path", "sync_tolerance": "sync_tolerance_s",
@@ -231,17 +256,12 @@ def options_from_args(args: argparse.Namespace):
     from ..replay import ReplayOptions
 
     cfg = build_config(args)
-    topics = {"cloud": args.cloud_topic, "depth": args.depth_topic, "color": args.color_topic, "info": args.info_topic,
-              "depth_info": args.depth_info_topic, "truth": args.truth_topic}
+    topics = input_topics(args)
     require(args.max_frames is None or args.max_frames >= 1, f"--max-frames must be >= 1, got {args.max_frames}")
-    interval = {}
-    if args.progress_interval is not None:
-        require(math.isfinite(args.progress_interval) and args.progress_interval >= 0,
-                f"--progress-interval must be >= 0 seconds, got {args.progress_interval}")
-        interval["progress_interval_s"] = args.progress_interval
+    interval = progress_interval(args)
     return ReplayOptions(
         bag=Path(args.bag), config=cfg, out=Path(args.out) if args.out else None, overwrite=args.overwrite,
-        write_output=not args.no_output, topics={k: v for k, v in topics.items() if v or (k == "depth_info" and v == "")},
+        write_output=not args.no_output, topics=topics,
         max_frames=args.max_frames,
         realtime=args.realtime, copy_inputs=args.copy_inputs, write_cloud=args.write_cloud, preview=args.preview,
         markers=not args.no_markers, poses=not args.no_poses, namespace=args.namespace, compress=not args.no_compression,
