@@ -175,7 +175,6 @@ def reduce_frames(native: torch.Tensor, imaging: Imaging) -> torch.Tensor:
     return block_mean64(native.to(torch.float64), imaging).to(torch.float32)
 
 
-
 def block_mean64(x: torch.Tensor, im: Imaging) -> torch.Tensor:
     """Block mean of float64 native images (B, Hn, Wn, 3) to the output size, border set to background."""
     k = im.factor

@@ -237,7 +237,6 @@ class SamplePoints:
         self.sv = torch.as_tensor((r + 0.5 + jy).reshape(-1), device=device)
 
 
-
 def covered_pairs(umin, umax, vmin, vmax, mask, samples: SamplePoints, eps: float, inner=None):
     """``(point, where, inside)`` of every native pixel whose sample point lies in the box
     ``[umin - eps, umax + eps) x [vmin - eps, vmax + eps)`` of a point where ``mask`` (arrays (B, P);

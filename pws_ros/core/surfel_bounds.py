@@ -197,6 +197,7 @@ def hulls_within(renderer: SurfelRenderer, lo: float, hi: float, *, max_bytes: i
 
 HULL_BATCH_ELEMENTS = 300_000   # surfel-segments bounded per batch of segments (about 0.5 KB each at the peak: ~160 MB)
 
+
 class _HullSweep(FootprintSweep):
     """Bounds the surfel footprints over batches of consecutive segments: every tensor operation serves
     a whole batch, so its cost (and the wake-up of torch's threads) is shared by the segments."""
