@@ -99,6 +99,14 @@ def nan_distortion(msgs):
     return msgs
 
 
+def one_valid_depth(msgs):
+    """A depth image with a single valid pixel: certified before (a certificate about a made-up scene)."""
+    mm = np.zeros((24, 32), np.uint16)
+    mm[12, 16] = 1500
+    msgs["/cam/depth"] = msgbuild.image_from_numpy(msgs["/cam/depth"].header, mm, T)
+    return msgs
+
+
 def unregistered(msgs):
     return frame_messages(A, color_size=(40, 24))
 
@@ -107,6 +115,7 @@ CASES = {
     # case class: (how frame A is corrupted, the axes that must be ERROR, a phrase of the ERROR's message)
     "input not registered": (unregistered, None, ("tx", "tz"), "not registered (different sizes)"),
     "CameraInfo NaN coefficients": (nan_distortion, None, ("tx", "tz"), "CameraInfo D[0] is nan"),
+    "depth with one valid pixel": (one_valid_depth, None, ("tx", "tz"), "below min_valid_depth"),
     "plan with axes 5": (None, BadPlan, ("tx", "tz"), "malformed plan message"),
     "plan/cloud malformed after its plan": (None, BadCloudAfterPlan, ("tx", "tz"), "is_bigendian"),
     "bounds with NaN shape": (None, NanBoundsShape, ("tz",), "malformed bounds message"),
