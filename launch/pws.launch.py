@@ -5,13 +5,20 @@ process (frames and bounds handed over in memory).
     ros2 launch pws_ros pws.launch.py depth:=/camera/camera/aligned_depth_to_color/image_raw \
         color:=/camera/camera/color/image_raw camera_info:=/camera/camera/color/camera_info
     ros2 launch pws_ros pws.launch.py points:=/kinect/depth_registered/points namespace:=robot1
+    ros2 launch pws_ros pws.launch.py workers:=2                 # two pipelines share the input stream
 
-Arguments: config_file, namespace, use_sim_time, log_level, and the input topic remaps points, depth,
-color, camera_info (each remaps the default input topic of config/pws.yaml, which are the RealSense
-ROS 2 wrapper's names and those of the shipped demo recording bags/demo).
+Arguments: config_file, namespace, use_sim_time, log_level, workers, and the input topic remaps points,
+depth, color, camera_info (each remaps the default input topic of config/pws.yaml, which are the
+RealSense ROS 2 wrapper's names and those of the shipped demo recording bags/demo).
+
+workers:=N (default 1: one node named ``pipeline``) starts N pipeline processes ``pipeline_0`` ..
+``pipeline_<N-1>`` with num_workers N and worker_index i: each certifies the frames whose stamp is
+assigned to it (pws_ros.bridge.workers; worker_period_s in the config chooses the rule), all publish on
+the same ``certification`` topic. Node-specific sections of the parameter file then need those names
+(the ``/**`` section applies to all).
 """
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.descriptions import ParameterValue
@@ -34,6 +41,8 @@ def launch_arguments():
         DeclareLaunchArgument("use_sim_time", default_value="false",
                               description="use /clock (set true with `ros2 bag play --clock`)"),
         DeclareLaunchArgument("log_level", default_value="info", description="ROS log level"),
+        DeclareLaunchArgument("workers", default_value="1",
+                              description="pipeline processes sharing the input stream (each certifies the stamps assigned to it)"),
     ]
     for default, (arg, what) in INPUT_REMAPS.items():
         args.append(DeclareLaunchArgument(arg, default_value=default, description=f"input topic: {what}"))
@@ -49,16 +58,37 @@ def common_parameters():
             {"use_sim_time": ParameterValue(LaunchConfiguration("use_sim_time"), value_type=bool)}]
 
 
-def generate_launch_description():
-    pipeline = Node(
+def pipeline_node(name: str, extra_parameters: list):
+    return Node(
         package="pws_ros",
         executable="pipeline",
-        name="pipeline",
+        name=name,
         namespace=LaunchConfiguration("namespace"),
-        parameters=common_parameters(),
+        parameters=common_parameters() + extra_parameters,
         remappings=input_remappings(),
         arguments=["--ros-args", "--log-level", LaunchConfiguration("log_level")],
         output="screen",
         emulate_tty=True,
     )
-    return LaunchDescription(launch_arguments() + [pipeline])
+
+
+def pipeline_nodes(workers: int):
+    """One node ``pipeline`` (workers 1), else ``pipeline_0`` .. with num_workers and worker_index set."""
+    if workers == 1:
+        return [pipeline_node("pipeline", [])]
+    return [pipeline_node(f"pipeline_{i}", [{"num_workers": workers, "worker_index": i}]) for i in range(workers)]
+
+
+def _pipelines(context, *args, **kwargs):
+    text = LaunchConfiguration("workers").perform(context)
+    try:
+        workers = int(str(text).strip())
+    except ValueError:
+        raise RuntimeError(f"workers:={text!r} is not a whole number") from None
+    if not 1 <= workers <= 1024:
+        raise RuntimeError(f"workers:={workers} must lie in 1 .. 1024")
+    return pipeline_nodes(workers)
+
+
+def generate_launch_description():
+    return LaunchDescription(launch_arguments() + [OpaqueFunction(function=_pipelines)])

@@ -31,10 +31,12 @@ def _stub_modules() -> dict[str, types.ModuleType]:
         pass
 
     class LaunchConfiguration(_Rec):
-        pass
+        def perform(self, context):
+            return context[self.args[0]]
 
     mods["launch"].LaunchDescription = LaunchDescription
     mods["launch.actions"].DeclareLaunchArgument = type("DeclareLaunchArgument", (_Rec,), {})
+    mods["launch.actions"].OpaqueFunction = type("OpaqueFunction", (_Rec,), {})
     mods["launch.substitutions"].LaunchConfiguration = LaunchConfiguration
     mods["launch.substitutions"].PathJoinSubstitution = type("PathJoinSubstitution", (_Rec,), {})
     mods["launch_ros.actions"].Node = type("Node", (_Rec,), {})
@@ -52,9 +54,16 @@ def _load(path: Path, monkeypatch):
     return module.generate_launch_description()
 
 
-def _split(ld):
-    entities = ld.args[0]
+def _split(ld, **values):
+    """The declared arguments and the nodes, OpaqueFunctions evaluated with the arguments' defaults
+    (``values`` override them)."""
+    entities = list(ld.args[0])
     args = {e.args[0]: e.kwargs for e in entities if type(e).__name__ == "DeclareLaunchArgument"}
+    context = {name: a.get("default_value") for name, a in args.items()}
+    context.update(values)
+    for e in list(entities):
+        if type(e).__name__ == "OpaqueFunction":
+            entities.extend(e.kwargs["function"](context))
     nodes = [e.kwargs for e in entities if type(e).__name__ == "Node"]
     return args, nodes
 
@@ -72,6 +81,19 @@ def test_pipeline_launch_structure(monkeypatch):
     assert node["parameters"][0].args == ("config_file",)
     assert node["parameters"][1]["use_sim_time"].kwargs == {"value_type": bool}
     assert node["namespace"].args == ("namespace",)
+
+
+def test_pipeline_launch_starts_one_node_per_worker(monkeypatch):
+    ld = _load(LAUNCH / "pws.launch.py", monkeypatch)
+    args, nodes = _split(ld, workers="3")
+    assert args["workers"]["default_value"] == "1" and args["workers"]["description"]
+    assert [n["name"] for n in nodes] == ["pipeline_0", "pipeline_1", "pipeline_2"]
+    assert all(n["executable"] == "pipeline" and n["remappings"] for n in nodes)
+    assert [n["parameters"][-1] for n in nodes] == [{"num_workers": 3, "worker_index": i} for i in range(3)]
+    assert all(n["parameters"][0].args == ("config_file",) for n in nodes)
+    for bad in ("0", "two", "2000"):
+        with pytest.raises(RuntimeError, match="workers"):
+            _split(ld, workers=bad)
 
 
 def test_four_process_launch_structure(monkeypatch):

@@ -568,3 +568,55 @@ def test_pipeline_pairs_unsynced_depth_and_colour_with_a_warning(bus, model_path
         assert len(bus.published["/certification"]) == 1                  # the last depth waits to be settled
     finally:
         node.close()
+
+
+def test_two_pipeline_workers_certify_every_stamp_once_as_one_worker_does(model_path):
+    """workers:=2 without ROS: two pipeline nodes on one input stream (num_workers 2, worker_index 0/1,
+    worker_period_s = the camera period) publish one certification per stamp between them, each on its
+    own stamps, equal to what a single pipeline publishes for the same stamps (latency, compute time and
+    the node's name aside)."""
+    import torch
+
+    from pws_ros.nodes.pipeline import PipelineNode
+
+    threads = torch.get_num_threads()
+    stamps = [T0 + k * 100_000_000 for k in range(4)]
+    shared = Bus()
+    alone = Bus()
+    nodes = []
+    try:
+        nodes = [PipelineNode(Context(shared, f"pipeline_{i}", **params(model_path, num_workers=2, worker_index=i,
+                                                                        worker_period_s=0.1))) for i in range(2)]
+        assert torch.get_num_threads() == max(1, threads // 2) or threads == 1
+        nodes.append(PipelineNode(Context(alone, "pipeline", **params(model_path))))
+        play(shared, stamps, lambda: shared.published["/certification"])
+        play(alone, stamps, lambda: alone.published["/certification"])
+        assert wait_for(lambda: all(n.worker.processed + n.worker.slot.dropped == 2 for n in nodes[:2]) and shared.idle())
+        got = shared.published["/certification"]
+        assert sorted(msgconv.stamp_to_ns(m.header.stamp) for m in got) == stamps   # each stamp exactly once
+        assert [n.worker.processed for n in nodes[:2]] == [2, 2] and [n.other_workers for n in nodes[:2]] == [2, 2]
+        by_node = {}
+        for m in got:
+            (status,) = {v["node"] for v in msgbuild.parse_certification(m).values()}
+            by_node.setdefault(status, []).append(msgconv.stamp_to_ns(m.header.stamp) // 100_000_000 % 2)
+        assert by_node == {"pipeline_0": [0, 0], "pipeline_1": [1, 1]}
+
+        def values(msgs):
+            out = {}
+            for m in msgs:
+                parsed = msgbuild.parse_certification(m)
+                for v in parsed.values():
+                    for k in ("latency_ms", "compute_ms", "node"):
+                        v.pop(k)
+                out[msgconv.stamp_to_ns(m.header.stamp)] = parsed
+            return out
+
+        assert values(got) == values(alone.published["/certification"])
+        assert nodes[0]._counters()["extra"]["other_workers_frames"] == 2
+    finally:
+        for n in nodes:
+            n.close()
+        shared.close()
+        alone.close()
+        torch.set_num_threads(threads)
+    assert not shared.errors and not alone.errors

@@ -5,6 +5,11 @@ buffer the inputs; a worker thread certifies the newest complete input frame (ol
 and counted: certification is slower than the camera), so callbacks and parameter services stay
 responsive.
 
+Several pipelines may share one input stream (``num_workers`` / ``worker_index``; ``ros2 launch pws_ros
+pws.launch.py workers:=N``): each certifies only the frames whose stamp is assigned to it
+(:class:`~pws_ros.bridge.workers.StampAssignment`, no coordinator), keeps its own latest-only mailbox,
+and uses cores / num_workers torch threads; all publish on the same ``certification`` topic.
+
 Subscribes (sensor-data QoS by default): ``points_topic`` (PointCloud2) or ``depth_topic`` +
 ``color_topic`` (Image) + ``camera_info_topic`` (CameraInfo) [+ ``depth_camera_info_topic``].
 Publishes (reliable): ``certification`` (DiagnosticArray, one per processed input frame, header =
@@ -19,6 +24,7 @@ from typing import Any
 
 from ..bridge import outputs
 from ..bridge.inputs import RawFrame, convert
+from ..bridge.workers import StampAssignment, set_torch_threads
 from ..core.errors import PwsError
 from ._common import HealthPublisher, InputFrontend, Worker, start
 
@@ -33,6 +39,9 @@ class PipelineNode:
 
         self.ctx = ctx
         ctx.on_change = self._on_change
+        self.assignment = StampAssignment.from_config(ctx.config)   # read-only: fixed for the node's life
+        self.other_workers = 0            # frames assigned to another worker (not ours to certify)
+        set_torch_threads(ctx.config.num_workers, ctx.log)
         self.engine = FrameCertifier(ctx.config, log=ctx.log)  # loads the model now (PwsError -> exit 2)
         self.pubs = outputs.OutputPublishers(ctx, (outputs.CERTIFICATION, outputs.MARKERS, outputs.CLOUD,
                                                    outputs.CLOUD_INFO, outputs.PREVIEW), axes=ctx.config.axes)
@@ -44,12 +53,17 @@ class PipelineNode:
         coverage = f"coverage {ctx.config.coverage}, " if ctx.config.method != "cms" else ""  # cms has no coverage rule
         ctx.log("info", f"pipeline ready: axes {', '.join(ctx.config.axes)}, method {ctx.config.method}, "
                         f"{coverage}device {self.engine.device}")
+        if self.assignment.num_workers > 1:
+            ctx.log("info", self.assignment.describe())
 
     def _on_change(self, cfg: Any) -> None:
         self.frontend.assembler.reconfigure(cfg)
         self.pubs.update_axes(cfg.axes)
 
     def _on_frame(self, raw: RawFrame) -> None:
+        if not self.assignment.mine(raw.stamp_ns):
+            self.other_workers += 1
+            return
         self.worker.submit(raw)
 
     def _process(self, raw: RawFrame) -> None:
@@ -93,7 +107,7 @@ class PipelineNode:
             "warning": self.engine.device_warning,
             "extra": {"busy": w.busy, "input_messages": self.frontend.received, "unmatched_inputs": self.frontend.dropped,
                       "ignored_inputs": self.frontend.assembler.ignored, "skipped_by_min_period": self.frontend.assembler.skipped,
-                      "time_jumps_back": self.frontend.time_jumps},
+                      "time_jumps_back": self.frontend.time_jumps, "other_workers_frames": self.other_workers},
         }
 
     def close(self) -> None:
