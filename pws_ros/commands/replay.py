@@ -71,7 +71,8 @@ examples:
   pws replay my_robot.mcap --depth-topic /camera/aligned_depth_to_color/image_raw \\
       --color-topic /camera/color/image_raw --info-topic /camera/color/camera_info --realtime
   pws replay bags/demo --method pws          # the entire cloud, regenerated from the ground truth
-  pws replay bags/demo --json --quiet > summary.json"""
+  pws replay bags/demo --json --quiet > summary.json
+  pws replay bags/demo --workers 2 --out /tmp/demo_out --overwrite   # frames as Ray tasks (pip install 'pws_ros[ray]')"""
 
 _UNIT_SCALE = {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "rad": 1.0, "deg": math.pi / 180.0, "°": math.pi / 180.0}
 
@@ -224,6 +225,14 @@ def register(subparsers) -> None:
                    "--sync-tolerance but within this is matched when neither has a nearer partner (or at the end of the "
                    "recording), with a warning naming the skew, s (default: config, 0.2; 0 = off)")
     i.add_argument("--max-frames", type=int, default=None, metavar="K", help="stop after K input frames")
+    r = p.add_argument_group("distributed (the optional extra: pip install 'pws_ros[ray]')")
+    r.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="certify the frames as Ray tasks on N CPUs of a local Ray instance (or of --ray-address): the "
+                        "driver writes the output in stamp order, at most 2N frames in flight, a frame whose worker dies "
+                        "is re-run; certificates equal the serial run's (default: serial, one process)")
+    r.add_argument("--ray-address", default=None, metavar="ADDR",
+                   help="with --workers: an existing Ray cluster (e.g. auto or ray://host:10001) instead of a local instance; "
+                        "pws_ros and the model file must be available on its nodes")
     i.add_argument("--realtime", action="store_true", help="the live node's online policy: a frame arriving (recorded stamps) while a "
                    "certification would still run waits in a one-frame slot and is dropped if a newer one comes (drops are counted); "
                    "default: certify every frame")
@@ -273,7 +282,13 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         opts = options_from_args(args)
-        result = replay(opts)
+        require(args.ray_address is None or args.workers is not None, "--ray-address needs --workers N")
+        if args.workers is not None:
+            from ..replay.distributed import replay_ray
+
+            result = replay_ray(opts, args.workers, args.ray_address)
+        else:
+            result = replay(opts)
     except PwsError as exc:
         print(f"pws replay: error: {exc}", file=sys.stderr)
         return 2

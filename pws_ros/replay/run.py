@@ -321,6 +321,32 @@ class Replay:
 
     def _loop(self, bag: BagReader, inputs: InputTopics) -> RealtimeScheduler | None:
         opts = self.opts
+        scheduler = None
+        if opts.realtime:
+            def run_one(raw: RawFrame, start: float) -> float:
+                _rec, duration = self.process(raw, start_s=start)
+                self._commit()
+                return duration
+
+            scheduler = RealtimeScheduler(run_one, on_drop=lambda raw: None)
+
+        for raw in self._frames(bag, inputs):
+            if scheduler is not None:
+                scheduler.arrive(raw, raw.stamp_ns / 1e9)
+            else:
+                self.process(raw)
+                self._commit()
+            self.bar.update(1)
+            if opts.max_frames is not None and self.frames_seen >= opts.max_frames:
+                break
+        if scheduler is not None:
+            scheduler.finish()
+        return scheduler
+
+    def _frames(self, bag: BagReader, inputs: InputTopics):
+        """The progress bar, then the assembled input frames of the bag in stamp order (input problems are
+        recorded and warned about here; the caller stops after ``max_frames``)."""
+        opts = self.opts
         roles = inputs.roles()
         roles.pop("truth", None)
         if inputs.mode == "rgbd":
@@ -334,15 +360,6 @@ class Replay:
             mode = "off" if opts.quiet else "log"
         self.bar = Progress(total, label="pws replay", mode=mode, interval_s=opts.progress_interval_s,
                             emit=lambda line: self.log("info", line))
-
-        scheduler = None
-        if opts.realtime:
-            def run_one(raw: RawFrame, start: float) -> float:
-                _rec, duration = self.process(raw, start_s=start)
-                self._commit()
-                return duration
-
-            scheduler = RealtimeScheduler(run_one, on_drop=lambda raw: None)
 
         copy: Callable[[BagMessage], None] | None = None
         if opts.copy_inputs and self.writer is not None:
@@ -384,17 +401,7 @@ class Replay:
                 t = inputs.points if self.assembler.locked_source == "pointcloud2" else inputs.color
                 if t in bag.topics and bag.topics[t].count:
                     self.bar.set_total(min(bag.topics[t].count, opts.max_frames or bag.topics[t].count))
-            if scheduler is not None:
-                scheduler.arrive(raw, raw.stamp_ns / 1e9)
-            else:
-                self.process(raw)
-                self._commit()
-            self.bar.update(1)
-            if opts.max_frames is not None and self.frames_seen >= opts.max_frames:
-                break
-        if scheduler is not None:
-            scheduler.finish()
-        return scheduler
+            yield raw
 
     def _summary(self, inputs: InputTopics, out: Path | None, dropped: int, wall: float, extra_frames: dict,
                  bag_info: dict, counts: dict) -> dict[str, Any]:
