@@ -26,7 +26,7 @@ options below override it. Nothing is written."""
 EPILOG = """\
 examples:
   pws ceiling ../shared/data/kinect_organized_cloud --model models/my_net.pt --sigma 0.25
-  pws ceiling my_recording --size 90x160 --max-frames 5 --no-model      # the ceiling alone, 160x90 input
+  pws ceiling my_recording --size 160x90 --max-frames 5 --no-model      # the ceiling alone, 160x90 input
   pws ceiling bags/demo --max-frames 2 --json"""
 
 
