@@ -557,3 +557,32 @@ def test_disocclusion_shows_the_uncovered_value_inside_the_bounds(uncovered):
         for a in np.linspace(alphas[i], alphas[i + 1], 9):
             f = reference_frame(cloud.points, cloud.colors, im, "tx", a)
             assert np.all(f >= hulls.lo[i] - 1e-7) and np.all(f <= hulls.hi[i] + 1e-7), (i, a)
+
+
+@pytest.mark.parametrize("axis", ["tz", "ry"])
+def test_large_boxes_enumerated_in_pieces_give_the_same_frames_and_bounds(monkeypatch, axis):
+    """covered_pairs enumerates the pixels of boxes over 2 pixels a side in pieces of PAIR_CHUNK (bounded
+    temporaries): tiny pieces give bitwise the same frames and bounds; more pairs than MAX_COVERED_PAIRS
+    (a cloud of points at the camera plane) are refused with a PwsError naming the cause, never allocated."""
+    import pws_ros.core.surfel as surfel
+
+    rng = np.random.default_rng(7)
+    cloud = random_cloud(rng, False)
+    near = rng.uniform([-0.05, -0.05, 0.03], [0.05, 0.05, 0.12], (5, 3))
+    cloud = Cloud(np.concatenate([cloud.points, near]), np.concatenate([cloud.colors, rng.random((5, 3)).astype(np.float32)]))
+    im = make_imaging("surfel", CAM, (3, 4), background=0.5, border=0)
+    alphas = make_grid(0.05, 0.025)
+
+    def run():
+        r = SurfelRenderer(cloud, im, axis)
+        h = segment_hulls(r, alphas)
+        return r.render_batch(alphas).numpy(), h.lo, h.hi
+
+    whole = run()
+    monkeypatch.setattr(surfel, "PAIR_CHUNK", 3)
+    pieces = run()
+    for a, b in zip(whole, pieces):
+        np.testing.assert_array_equal(a, b)
+    monkeypatch.setattr(surfel, "MAX_COVERED_PAIRS", 50)
+    with pytest.raises(PwsError, match="pixel-surfel pairs in one batch"):
+        run()

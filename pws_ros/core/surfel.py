@@ -41,6 +41,11 @@ from .motion import depth, parse_axis, project, split_events
 from .render import DEFAULT_MAX_ELEMENTS, resolve_device
 
 _CORNER_SIGNS = ((-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0))
+# covered_pairs: the most pixel-surfel pairs one call may hold (a frame of a real camera holds a few
+# million per batch; a cloud of points at the camera plane would ask for billions: refused, never allocated)
+PAIR_BYTES = 17                      # two int64 indices and a flag per pair kept
+MAX_COVERED_PAIRS = 32 * 2**20       # about 0.5 GiB of pairs
+PAIR_CHUNK = 2**21                   # box pixels beyond the 2x2 corner enumerated at a time (bounded temporaries)
 
 
 class SurfelRenderer:
@@ -279,6 +284,27 @@ def covered_pairs(umin, umax, vmin, vmax, mask, samples: SamplePoints, eps: floa
             insides.append(inside(su, sv, inner)[f])
     more = torch.nonzero(live & ((nc > 2) | (nr > 2)), as_tuple=True)[0]
     if len(more):  # boxes over 2 pixels a side (a point near the camera plane, long sweeps): the rest of each
+        counts = nc[more] * nr[more]
+        total = int(counts.sum()) + sum(len(w) for w in wheres)
+        require(total <= MAX_COVERED_PAIRS,
+                f"the surfels of this frame can cover {total} pixel-surfel pairs in one batch, more than the "
+                f"{MAX_COVERED_PAIRS} (about {MAX_COVERED_PAIRS * PAIR_BYTES / 2**20:.0f} MiB) one frame may hold: "
+                "points very near the camera plane or implausible coordinates (check the input cloud)")
+        # enumerated in pieces of about PAIR_CHUNK pixels (memory stays bounded whatever the boxes)
+        ends = torch.cumsum(counts, 0)
+        cuts = torch.searchsorted(ends, torch.arange(PAIR_CHUNK, int(ends[-1]) + PAIR_CHUNK, PAIR_CHUNK, device=dev))
+        start = 0
+        for stop in sorted(set(int(c) for c in cuts.clamp_(max=len(more) - 1).tolist())):
+            _rest_of_boxes(more[start:stop + 1], nc, nr, base, batch_base, W, samples, inside,
+                           (lo_u, hi_u, lo_v, hi_v), inner, P, points, wheres, insides)
+            start = stop + 1
+    return torch.cat(points), torch.cat(wheres), (torch.cat(insides) if inner is not None else None)
+
+
+def _rest_of_boxes(more, nc, nr, base, batch_base, W, samples, inside, boxes, inner, P, points, wheres, insides):
+    """The pixels of boxes ``more`` beyond their 2x2 corner whose sample lies in the box (appended)."""
+    dev = more.device
+    if len(more):
         cnt = nc[more] * nr[more]
         rep = torch.repeat_interleave(torch.arange(len(more), device=dev), cnt)
         t = torch.arange(int(cnt.sum()), device=dev) - (torch.cumsum(cnt, 0) - cnt)[rep]
@@ -288,13 +314,12 @@ def covered_pairs(umin, umax, vmin, vmax, mask, samples: SamplePoints, eps: floa
         f, off = f[rest], dr[rest] * W + dc[rest]
         pix = base[f] + off
         su, sv = samples.su[pix], samples.sv[pix]
-        ok = inside(su, sv, (lo_u, hi_u, lo_v, hi_v), f)
+        ok = inside(su, sv, boxes, f)
         f, off, su, sv = f[ok], off[ok], su[ok], sv[ok]
         points.append(f % P)
         wheres.append(batch_base[f] + off)
         if inner is not None:
             insides.append(inside(su, sv, inner, f))
-    return torch.cat(points), torch.cat(wheres), (torch.cat(insides) if inner is not None else None)
 
 
 class FootprintSweep:
