@@ -65,11 +65,11 @@ def test_advice_names_what_limits():
 def test_cli_json_and_bad_input():
     cmd = [sys.executable, "-m", "pws_ros.cli", "ceiling", str(DEMO), "--max-frames", "1", "--axes", "tz", "--radius", "tz=2mm",
            "--n0", "8", "--n", "32", "--anchors", "4", "--quiet"]
-    p = subprocess.run(cmd + ["--no-model", "--size", "160x90", "--json"], capture_output=True, text=True, timeout=300)
+    p = subprocess.run(cmd + ["--no-model", "--size", "90x160", "--json"], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
     d = json.loads(p.stdout)
     assert [r["axis"] for r in d["rows"]] == ["tz"] and d["rows"][0]["model"] is None and 0 < d["rows"][0]["ceiling_share"] <= 1
     p = subprocess.run(cmd + ["--no-model"], capture_output=True, text=True, timeout=300)
     assert p.returncode == 2 and "needs the classifier's input size" in p.stderr
     p = subprocess.run(cmd + ["--size", "16x"], capture_output=True, text=True, timeout=60)
-    assert p.returncode == 2 and "expected WxH" in p.stderr
+    assert p.returncode == 2 and "expected HxW" in p.stderr

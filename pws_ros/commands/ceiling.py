@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from ..core.errors import PwsError, require
+from .common import image_size
 
 DESCRIPTION = """\
 For each frame of a recording and each axis: the certificate CEILING, the radius that a classifier
@@ -26,19 +27,8 @@ options below override it. Nothing is written."""
 EPILOG = """\
 examples:
   pws ceiling ../shared/data/kinect_organized_cloud --model models/my_net.pt --sigma 0.25
-  pws ceiling my_recording --size 160x90 --max-frames 5 --no-model      # the ceiling alone, 160x90 input
+  pws ceiling my_recording --size 90x160 --max-frames 5 --no-model      # the ceiling alone, 160x90 input
   pws ceiling bags/demo --max-frames 2 --json"""
-
-
-def _size(text: str) -> tuple[int, int]:
-    """``WxH`` -> (H, W)."""
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WxH (e.g. 160x90), got {text!r}") from None
-    if w < 1 or h < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive WxH, got {text!r}")
-    return (h, w)
 
 
 def register(subparsers) -> None:
@@ -47,8 +37,9 @@ def register(subparsers) -> None:
     p.add_argument("bag", help="rosbag2 bag directory, or a bare .mcap / .db3 file")
     p.add_argument("--model", default=None, help="your TorchScript classifier (default: config model_path)")
     p.add_argument("--no-model", action="store_true", help="the ceiling alone (needs --size, or a model that declares its input)")
-    p.add_argument("--size", type=_size, default=None, metavar="WxH",
-                   help="the classifier input of the ceiling (default: the model's declared input size)")
+    p.add_argument("--size", type=image_size, default=None, metavar="HxW",
+                   help="the classifier input of the ceiling, height first as a model's input_size (default: the "
+                        "model's declared input size)")
     p.add_argument("--max-frames", type=int, default=3, metavar="K", help="frames to measure (default 3)")
     p.add_argument("--json", action="store_true", help="print the rows and the advice as JSON")
     p.add_argument("--quiet", action="store_true", help="no progress")
