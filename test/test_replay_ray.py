@@ -114,14 +114,34 @@ def test_ray_replay_equals_the_serial_run(local_ray, bag, model, serial, tmp_pat
     assert all(pid != os.getpid() for pid in rr.task_pids.values())   # certified in worker processes
 
 
+def _parent(pid: int) -> int:
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("PPid:"):
+                return int(line.split()[1])
+    return 0
+
+
+def _ours(pid: int) -> bool:
+    """``pid`` descends from this test process (its Ray instance's raylet started it)."""
+    me = os.getpid()
+    for _ in range(16):
+        pid = _parent(pid)
+        if pid == me:
+            return True
+        if pid <= 1:
+            return False
+    return False
+
+
 def _certify_pids() -> list[int]:
-    """Ray worker processes running a frame now (Ray titles them ray::_certify)."""
+    """Workers of this test's Ray instance running a frame now (Ray titles them ray::_certify)."""
     pids = []
     for d in os.listdir("/proc"):
         if d.isdigit():
             try:
                 with open(f"/proc/{d}/cmdline", "rb") as f:
-                    if f.read().startswith(b"ray::_certify"):
+                    if f.read().startswith(b"ray::_certify") and _ours(int(d)):
                         pids.append(int(d))
             except OSError:
                 continue
