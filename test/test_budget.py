@@ -26,14 +26,14 @@ def costs(batch=0.01, image=1e-4, point=0.02, fixed=0.05) -> B.CostModel:
 
 def predicted(c: B.CostModel, s: B.Sizes, per_point=False) -> float:
     anchors = s.max_partitions if per_point else s.num_anchors
-    return c.axis_s(CONF["n0"], anchors, s.n, s.max_partitions, CONF["batch_size"])
+    return c.axis_s(s.n0, anchors, s.n, s.max_partitions, CONF["batch_size"])
 
 
 def test_a_share_that_fits_keeps_the_configured_sizes():
     c = costs()
-    full = predicted(c, B.Sizes(24, 256, 257, 0, 0, False, True))
+    full = predicted(c, B.Sizes(64, 24, 256, 257, 0, 0, False, True))
     s = B.size_axis(full / B.SAFETY + 1e-9, c, **CONF)
-    assert (s.num_anchors, s.n, s.max_partitions, s.reduced, s.fits) == (24, 256, 257, False, True)
+    assert (s.n0, s.num_anchors, s.n, s.max_partitions, s.reduced, s.fits) == (64, 24, 256, 257, False, True)
     s = B.size_axis(full / B.SAFETY * 0.99, c, **CONF)   # just below: reduced
     assert s.reduced and s.fits and predicted(c, s) <= B.SAFETY * s.share_s
 
@@ -49,16 +49,18 @@ def test_sizes_never_exceed_the_share_nor_the_configuration(per_point):
         share = float(10.0 ** rng.uniform(-2, 2))
         s = B.size_axis(share, c, per_point=per_point, **conf)
         assert 1 <= s.num_anchors <= conf["num_anchors"] and 1 <= s.n <= conf["n"]
+        assert min(B.MIN_N0, conf["n0"]) <= s.n0 <= conf["n0"]
         assert B.MIN_POINTS <= s.max_partitions <= max(B.MIN_POINTS, conf["max_partitions"])
         anchors = s.max_partitions if per_point else s.num_anchors
-        cost = c.axis_s(conf["n0"], anchors, s.n, s.max_partitions, conf["batch_size"])
+        cost = c.axis_s(s.n0, anchors, s.n, s.max_partitions, conf["batch_size"])
         assert cost == pytest.approx(s.predicted_s)
         if s.fits:
             fitted += 1
             assert cost <= B.SAFETY * share * (1 + 1e-12)
         else:  # even the least work is above the share: the axis is not started
             least_anchors = conf["num_anchors"] if per_point else 1   # per_point: the grid frames are the estimates
-            assert (s.num_anchors, s.n, s.max_partitions) == (least_anchors, 1, B.MIN_POINTS) and cost > B.SAFETY * share
+            least = (min(B.MIN_N0, conf["n0"]), least_anchors, 1, B.MIN_POINTS)
+            assert (s.n0, s.num_anchors, s.n, s.max_partitions) == least and cost > B.SAFETY * share
         assert B.size_axis(share, c, per_point=per_point, **conf) == s   # a function of its arguments only
     assert 30 < fitted < 300
 
@@ -70,9 +72,9 @@ def test_a_smaller_share_never_buys_more_work():
         s = B.size_axis(float(share), c, **CONF)
         work = s.num_anchors * s.n
         if prev is not None:
-            assert work <= prev[0] and s.max_partitions <= prev[1]
-        prev = (work, s.max_partitions)
-    assert prev[0] < 24 * 256 and prev[1] < 257
+            assert work <= prev[0] and s.max_partitions <= prev[1] and s.n0 <= prev[2]
+        prev = (work, s.max_partitions, s.n0)
+    assert prev[0] < 24 * 256 and prev[1] < 257 and prev[2] < 64
 
 
 def test_the_call_count_bounds_the_weak_frame_branch():
@@ -166,7 +168,7 @@ def test_sizes_are_fixed_before_any_sample_is_drawn(make_model_file, small_camer
         s = events[start][1]
         assert s.reduced and s.n < 100_000 and cert.status != "error", cert.reason
         samples = [e[1] for e in events[start + 1:stop]]
-        assert samples[0] == 16 and all(k <= s.num_anchors * s.n for k in samples[1:])   # n0, then the sized n
+        assert samples[0] == s.n0 and all(k <= s.num_anchors * s.n for k in samples[1:])   # the sized n0, then n
         assert cert.n in (s.n, s.n * s.num_anchors) and cert.bounds["time_budget"]["n"] == s.n
 
 
@@ -199,7 +201,8 @@ def test_a_slow_classifier_keeps_each_frame_within_its_budget(small_camera):
         for c in res.certificates:
             tb = c.bounds["time_budget"]
             assert c.status != "error", c.reason
-            assert tb["reduced"] and tb["num_anchors"] * tb["n"] < 24 * 256 and c.classifier_calls <= 64 + tb["num_anchors"] * tb["n"]
+            assert tb["reduced"] and tb["num_anchors"] * tb["n"] < 24 * 256
+            assert c.classifier_calls <= tb["n0"] + tb["num_anchors"] * tb["n"] and c.n0 == tb["n0"]
         assert sum(c.bounds["time_budget"]["share_s"] for c in res.certificates) <= budget
     assert any(c.radius > 0 for c in res.certificates)
 

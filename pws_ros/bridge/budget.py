@@ -7,15 +7,17 @@ what an axis costs whatever its size (planning, set-up). It is measured by a war
 start, the geometry on the first frame) and updated after every axis from the certificate's own
 timings (an exponential moving average, :data:`EMA_WEIGHT`).
 
-Before an axis runs, :func:`size_axis` turns the axis' share of the frame's budget into the three
-sizes that bound its work: ``num_anchors`` and ``n`` (at most ``n0 + num_anchors * n`` classifier
+Before an axis runs, :func:`size_axis` turns the axis' share of the frame's budget into the sizes
+that bound its work: ``n0``, ``num_anchors`` and ``n`` (at most ``n0 + num_anchors * n`` classifier
 calls, whichever way the core spends them: anchors sharing their noise, or the weak-frame branch's
 ``num_anchors * n`` samples at the centre) and ``max_partitions`` (the grid the geometry renders and
-bounds). The configured sizes are kept when they fit; otherwise all three shrink together (the
-anchors with the square root of the factor, n with the rest), the largest that fits, found by
-bisection on the cost model. A frame that needs more work than fits gets a smaller radius, never more
-time; when even the least work (one anchor, n = 1, 3 grid points) does not fit, the axis is not
-started (an ERROR certificate naming the budget).
+bounds). The configured sizes are kept when they fit; otherwise all shrink together (the anchors with
+the square root of the factor, n with the rest, n0 and the grid in proportion, n0 not below
+:data:`MIN_N0`), the largest that fits, found by bisection on the cost model. A frame that needs more
+work than fits gets a smaller radius, never more time; when even the least work (n0 = MIN_N0, one
+anchor, n = 1, 3 grid points) does not fit, the axis is not started (an ERROR certificate naming the
+budget). ``n0`` only selects the label and plans the anchors: fewer selection samples never make a
+certificate wrong, only its anchors less well placed.
 
 Why the statistics stay valid: the sizes are a function of the budget and the machine's measured
 timings only, fixed before the axis draws any sample, so they are independent of the axis' noise.
@@ -35,6 +37,7 @@ from ..core.coverage import FRONTIER_PARTS, FRONTIER_ROUNDS
 SAFETY = 0.85          # the work of an axis is sized for this fraction of its share (the cost model is an estimate)
 EMA_WEIGHT = 0.3       # weight of the newest observation in the cost model's moving averages
 MIN_POINTS = 3         # the smallest grid: -b, 0, +b
+MIN_N0 = 8             # the fewest selection samples a budget leaves (n0 only picks the label and plans the anchors)
 FRONTIER_POINTS = 2 * FRONTIER_ROUNDS * (FRONTIER_PARTS - 1)   # points the frontier refinement may add to a grid
 WARMUP_POINTS = 9      # grid points of the geometry warm-up on the first frame
 
@@ -115,6 +118,7 @@ class CostModel:
 class Sizes:
     """The work of one axis under a budget."""
 
+    n0: int
     num_anchors: int
     n: int
     max_partitions: int
@@ -136,20 +140,21 @@ def size_axis(share_s: float, costs: CostModel, *, n0: int, n: int, num_anchors:
     ``costs`` only (nothing about the frame's samples)."""
     target = safety * float(share_s)
     P0 = max(MIN_POINTS, int(max_partitions))
-    A0, N0 = max(1, int(num_anchors)), max(1, int(n))
+    A0, N0, S0 = max(1, int(num_anchors)), max(1, int(n)), max(1, int(n0))
 
-    def at(s: float) -> tuple[int, int, int]:
+    def at(s: float) -> tuple[int, int, int, int]:
         if s >= 1.0:
-            return A0, N0, P0
+            return S0, A0, N0, P0
         p = min(P0, max(MIN_POINTS, int(math.floor(s * P0))))
+        sel = min(S0, max(MIN_N0, int(math.floor(s * S0))))
         if per_point:
-            return A0, min(N0, max(1, int(math.floor(s * N0)))), p
+            return sel, A0, min(N0, max(1, int(math.floor(s * N0)))), p
         a = min(A0, max(1, int(math.floor(A0 * math.sqrt(s)))))
         nn = min(N0, max(1, int(math.floor(s * A0 * N0 / a))))
-        return a, nn, p
+        return sel, a, nn, p
 
-    def cost(sz: tuple[int, int, int]) -> float:
-        return costs.axis_s(int(n0), sz[2] if per_point else sz[0], sz[1], sz[2], batch_size)
+    def cost(sz: tuple[int, int, int, int]) -> float:
+        return costs.axis_s(sz[0], sz[3] if per_point else sz[1], sz[2], sz[3], batch_size)
 
     full = at(1.0)
     if cost(full) <= target:
@@ -193,5 +198,5 @@ def measure_inference(model: Any, shape: tuple[int, int], batch_size: int, sigma
     return timed(1), timed(int(batch_size))
 
 
-__all__ = ["CostModel", "EMA_WEIGHT", "FRONTIER_POINTS", "MIN_POINTS", "SAFETY", "Sizes", "WARMUP_POINTS", "measure_inference",
+__all__ = ["CostModel", "EMA_WEIGHT", "FRONTIER_POINTS", "MIN_N0", "MIN_POINTS", "SAFETY", "Sizes", "WARMUP_POINTS", "measure_inference",
            "size_axis"]

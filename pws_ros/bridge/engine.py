@@ -191,7 +191,7 @@ class FrameCertifier:
 
     def certify_config(self, axis: str | None = None, stamp_ns: int = 0, sizes: Sizes | None = None):
         """The core's CertifyConfig; for an axis of a frame: ``alpha / len(axes)`` and the derived seed;
-        with ``sizes`` (a time budget, :mod:`.budget`): their ``num_anchors``, ``n`` and ``max_partitions``."""
+        with ``sizes`` (a time budget, :mod:`.budget`): their ``n0``, ``num_anchors``, ``n`` and ``max_partitions``."""
         from dataclasses import replace
 
         from ..core.smoothing import derive_seed
@@ -202,7 +202,7 @@ class FrameCertifier:
             cfg = replace(cfg, alpha=self.config.alpha / max(1, len(self.config.axes)),
                           seed=derive_seed(self.config.seed, int(stamp_ns), axis))
         if sizes is not None and sizes.reduced:
-            cfg = replace(cfg, num_anchors=int(sizes.num_anchors), n=int(sizes.n), max_partitions=int(sizes.max_partitions),
+            cfg = replace(cfg, n0=int(sizes.n0), num_anchors=int(sizes.num_anchors), n=int(sizes.n), max_partitions=int(sizes.max_partitions),
                           min_partitions=min(int(cfg.min_partitions), int(sizes.max_partitions)))
         return cfg
 
@@ -398,7 +398,7 @@ class FrameCertifier:
                      stamp_ns: int = 0, sizes: Sizes | None = None) -> Certificate:
         """Plan, render and certify one axis with the core's ``certify`` (frames are never all kept in
         memory). ``imaging`` is the frame's :class:`~pws_ros.core.imaging.Imaging`; ``sizes`` (a time
-        budget's, fixed before any sample is drawn) replace num_anchors, n and max_partitions. Never
+        budget's, fixed before any sample is drawn) replace n0, num_anchors, n and max_partitions. Never
         raises: failures are ERROR certificates."""
         from ..core.certify import certify
 
@@ -473,7 +473,8 @@ class FrameCertifier:
                     sizes = self.size_for(share) if budget > 0 and self.config.method != "cms" and self.costs.ready else None
                     if sizes is not None and not sizes.fits:
                         cert = self.error_for(axis, f"time budget: {share:.3g} s for this axis ({budget:g} s per frame) is less than "
-                                                    f"the least work takes here (one anchor, n = 1, {sizes.max_partitions} grid points: "
+                                                    f"the least work takes here (n0 = {sizes.n0}, one anchor, n = 1, "
+                                                    f"{sizes.max_partitions} grid points: "
                                                     f"about {sizes.predicted_s:.3g} s)")
                     else:
                         cert = self.certify_axis(cloud, imaging, axis, dense_cloud, preview_every, previews, plans,
@@ -502,8 +503,8 @@ class FrameCertifier:
         cert.bounds["time_budget"] = {
             "frame_budget_s": float(budget), "share_s": float(sizes.share_s), "spent_s": float(spent),
             "predicted_s": float(sizes.predicted_s), "reduced": bool(sizes.reduced), "fits": bool(sizes.fits),
-            "num_anchors": int(sizes.num_anchors), "n": int(sizes.n), "max_partitions": int(sizes.max_partitions),
-            "configured": {"num_anchors": int(c.num_anchors), "n": int(c.n), "max_partitions": int(c.max_partitions)},
+            "n0": int(sizes.n0), "num_anchors": int(sizes.num_anchors), "n": int(sizes.n), "max_partitions": int(sizes.max_partitions),
+            "configured": {"n0": int(c.n0), "num_anchors": int(c.num_anchors), "n": int(c.n), "max_partitions": int(c.max_partitions)},
             "costs": {k: float(v) for k, v in self.costs.to_dict().items()},
         }
 

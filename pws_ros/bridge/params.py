@@ -134,7 +134,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("num_anchors", 24, "anchor frames for coverage=anchors (surfel imaging: the most anchors, i.e. a budget of "
               "n0 + num_anchors * n classifier calls per axis; a frame needing more gets a smaller radius)", range=(1, 100_000), nodes=_ANCHOR),
     ParamSpec("time_budget_s", 0.0, "time budget per frame, split evenly over its axes: the certifier measures what a "
-              "classifier call and the geometry cost on this machine (a warm-up, then every axis) and sizes num_anchors, n and "
+              "classifier call and the geometry cost on this machine (a warm-up, then every axis) and sizes n0, num_anchors, n and "
               "max_partitions of each axis (never above the configured ones) before it draws any sample, so that the axis "
               "finishes within its share; a frame that needs more gets a smaller radius, never more time; 0 = off (the "
               "configured sizes)", range=(0.0, 86400.0), nodes=("pipeline",), unit="s"),
