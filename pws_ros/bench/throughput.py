@@ -7,8 +7,10 @@
    each keeping the stamps :class:`~pws_ros.bridge.workers.StampAssignment` gives it (the pipeline
    node's rule; ``worker_period_s`` = the recording's frame period) and using ``cores // W`` torch
    threads, as ``workers:=W`` does. Reported per W: wall time from a common start (models loaded
-   before), frames per minute, the speed-up over one worker, and whether every stamp's certificates
-   equal the one-worker run's. Every frame is certified (no latest-only drops: this measures capacity).
+   before), frames per minute, the speed-up over one worker, the rate if every worker stayed busy (W x
+   frames / the workers' summed busy time: live, each always has a newest frame of its own, so an
+   unlucky split of slow frames does not idle the others) and whether every stamp's certificates equal
+   the one-worker run's. Every frame is certified (no latest-only drops: this measures capacity).
 2. **Budget.** The first frames certified with ``time_budget_s`` 0 and ``--budget``: per axis the share,
    the time spent, the sizes (anchors, n, grid), the classifier calls and the radius.
 
@@ -96,7 +98,10 @@ def run_workers(config: Any, frames: list, workers: int, period_ns: int) -> dict
         if overlap:
             raise RuntimeError(f"stamps certified by two workers: {sorted(overlap)[:3]}")
         certs.update(c)
+    busy = sum(w for _i, w, _t, _c in results)
     return {"workers": workers, "wall_s": wall, "frames": len(certs), "frames_per_min": 60.0 * len(certs) / wall,
+            # live, every worker always has a newest frame of its own: the rate when all stay busy
+            "busy_frames_per_min": 60.0 * workers * len(certs) / busy if busy > 0 else float("nan"),
             "per_worker": sorted((i, round(w, 2), len([s for s in c]), t) for i, w, t, c in results), "certs": certs}
 
 
@@ -154,6 +159,7 @@ def main(argv: list[str] | None = None) -> int:
     base = runs[0]
     for r in runs:
         r["speedup"] = base["wall_s"] / r["wall_s"]
+        r["busy_speedup"] = r["busy_frames_per_min"] / base["busy_frames_per_min"]
         r["equal_to_first"] = r["certs"] == base["certs"]
     rows = budget_rows(config, frames[: args.budget_frames], args.budget)
     load1 = os.getloadavg()
@@ -165,10 +171,13 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     print(f"{args.bag}: {len(frames)} frames x {args.loops} loops; {machine['cores']} cores; load average "
           f"{machine['loadavg_before']} before, {machine['loadavg_after']} after")
-    print(f"{'workers':>7}  {'wall s':>7}  {'frames':>6}  {'frames/min':>10}  {'speed-up':>8}  {'equal certs':>11}  per worker (index, s, frames, threads)")
+    print(f"{'workers':>7}  {'wall s':>7}  {'frames':>6}  {'frames/min':>10}  {'speed-up':>8}  {'all busy/min':>12}  {'speed-up':>8}  "
+          f"{'equal certs':>11}  per worker (index, s, frames, threads)")
     for r in runs:
         print(f"{r['workers']:>7}  {r['wall_s']:>7.1f}  {r['frames']:>6}  {r['frames_per_min']:>10.1f}  {r['speedup']:>7.2f}x  "
-              f"{'yes' if r['equal_to_first'] else 'NO':>11}  {r['per_worker']}")
+              f"{r['busy_frames_per_min']:>12.1f}  {r['busy_speedup']:>7.2f}x  {'yes' if r['equal_to_first'] else 'NO':>11}  {r['per_worker']}")
+    print("(all busy: W x frames / the workers' summed busy time, the rate when every worker always has a frame of its own, "
+          "as live under the latest-only policy)")
     print(f"\ntime budget {args.budget:g} s per frame vs none (first {len(rows) // max(1, len(config.axes))} frames):")
     print(f"{'frame':>5} {'axis':>4} | {'none: s':>7} {'calls':>5} {'anch':>4} {'n':>4} {'grid':>4} {'radius':>9} | "
           f"{'share s':>7} {'spent s':>7} {'calls':>5} {'anch':>4} {'n':>4} {'grid':>4} {'radius':>9} {'of':>9}")
