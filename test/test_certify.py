@@ -316,3 +316,29 @@ def test_coverage_at_an_exact_crossing_instant(model, scenes):
     cert = certify(cloud, CAM, model, "tx", radius, "pws", config, plan=plan)
     assert cert.status == STATUS_CERTIFIED
     check_certificate(cert, cloud, plan, config, alphas=[-0.07, 0.01, 0.03])
+
+
+def test_certify_returns_the_plan_it_rests_on_and_never_serialises_it():
+    """certify returns what it produces: cert.plan is the grid the certificate rests on (refined by the
+    adaptive anchors: its partitions are the certificate's), and the JSON of a certificate leaves it out."""
+    import json
+
+    from pws_ros.core.camera import CameraIntrinsics
+    from pws_ros.core.certify import CertifyConfig, certify
+    from pws_ros.core.cloud import cloud_from_rgbd
+    from pws_ros.core.model import load_model, save_model
+
+    cam = CameraIntrinsics(16, 12, 14.0, 15.0, 7.5, 5.5, "cam")
+    rng = np.random.default_rng(3)
+    cloud = cloud_from_rgbd(rng.uniform(1.0, 1.5, cam.shape), rng.random(cam.shape + (3,)).astype(np.float32), cam)
+    import tempfile
+    from pathlib import Path
+
+    from conftest import MeanThresholdNet
+
+    with tempfile.TemporaryDirectory() as d:
+        model = load_model(save_model(MeanThresholdNet(0.3), Path(d) / "m.pt", ["a", "b"], input_size=(3, 4)))
+        cert = certify(cloud, cam, model, "tz", 0.01, "pws_of", CertifyConfig(n0=16, n=32, num_anchors=3))
+    assert cert.plan is not None and cert.plan.num_partitions == cert.num_partitions and 0.0 in cert.plan.alphas
+    d = cert.to_dict()
+    assert "plan" not in d and json.loads(cert.to_json())["num_partitions"] == cert.num_partitions

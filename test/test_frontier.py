@@ -114,8 +114,8 @@ def test_surfel_certificate_holds_under_brute_force_rendering(seed, axis, z, num
     radius = 3 * SCALE[axis]
     config = CertifyConfig(sigma=SIGMA, n0=64, n=256, alpha=0.01, seed=seed, num_anchors=num_anchors, border=0,
                            batch_size=4096)
-    plans = []
-    cert = certify(cloud, CAM, model, axis, radius, "pws_of", config, imaging=im, plan_out=plans)
+    cert = certify(cloud, CAM, model, axis, radius, "pws_of", config, imaging=im)
+    plans = [cert.plan]
     assert cert.label == 1
     weak = num_anchors > 1 and cert.num_bounds == 1 and cert.n == num_anchors * config.n
     if z < 1:
@@ -148,12 +148,11 @@ def test_frontier_refinement_widens_a_short_certificate(tiny_model):
     im = make_imaging("surfel", CAM, (3, 4), background=0.0, border=0)
     x0 = reference_frame(cloud.points, cloud.colors, im, "ry", 0.0)
     model = tiny_model(float(x0[..., 0].mean()) - 1.5 * SIGMA / math.sqrt(12))
-    plans = []
     cert = certify(cloud, CAM, model, "ry", 0.3, "pws_of", CertifyConfig(sigma=SIGMA, n0=64, n=256, seed=5, num_anchors=2, border=0),
-                   imaging=im, plan_out=plans)
+                   imaging=im)
     assert cert.status == "not_certified"
     splits = cert.bounds["frontier_splits"]
-    assert splits > 0 and plans[-1].details["frontier_splits"] == splits
+    assert splits > 0 and cert.plan.details["frontier_splits"] == splits
     assert 0 < cert.radius < 0.3
 
 

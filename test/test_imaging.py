@@ -493,8 +493,8 @@ def test_memory_ceiling_keeps_the_refined_grid_small_instead_of_failing(monkeypa
 
     with tempfile.TemporaryDirectory() as d:
         model = load_model(save_model(MeanThresholdNet(0.3), Path(d) / "m.pt", ["a", "b"], input_size=(3, 4)))
-        plans: list = []
-        cert = certify_mod.certify(cloud, CAM, model, "tx", 0.05, "pws_of", cfg, imaging=im, plan_out=plans)
+        cert = certify_mod.certify(cloud, CAM, model, "tx", 0.05, "pws_of", cfg, imaging=im)
+        plans = [cert.plan]
     # the frontier refinement bounds a few sub-segments at a time (no stored bounds): its points come on top
     splits = cert.bounds.get("frontier_splits", 0)
     assert cert.status != "error" and cert.num_partitions <= 11 + splits and plans[-1].num_partitions == cert.num_partitions

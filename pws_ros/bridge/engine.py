@@ -418,12 +418,10 @@ class FrameCertifier:
             if plans is not None:
                 plans[axis] = plan
             t_plan = time.perf_counter() - t0
-            final: list = []
             cert = certify(src, intr, self.model, axis, c.radius_for(axis), method=c.method,
-                           config=config, denoiser=self.denoiser, plan=plan, imaging=imaging,
-                           plan_out=final)
-            if final:  # the adaptive anchors may refine the plan: publish the poses the certificate rests on
-                plan = final[-1]
+                           config=config, denoiser=self.denoiser, plan=plan, imaging=imaging)
+            if cert.plan is not None:  # the adaptive anchors may refine the plan: publish the poses it rests on
+                plan = cert.plan
                 if plans is not None:
                     plans[axis] = plan
             cert.timings["plan"] = t_plan

@@ -123,15 +123,23 @@ def imaging_for(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, config
 
 def certify(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, axis: str, radius: float, method: str = "pws_of",
             config: CertifyConfig | None = None, denoiser=None, plan: Plan | None = None,
-            progress: Callable[[int, int], None] | None = None, imaging: Imaging | None = None,
-            plan_out: list | None = None) -> Certificate:
+            progress: Callable[[int, int], None] | None = None, imaging: Imaging | None = None) -> Certificate:
     """Certify the smoothed prediction on ``cloud`` seen by camera ``intr`` for motions ``[-radius, radius]``.
 
+    The guarantee of a ``certified`` result (``cert.radius``; ``not_certified`` certifies the smaller
+    ``cert.radius`` in the same sense): with probability at least ``1 - config.alpha`` over the noise,
+    the smoothed classifier ``g(x) = argmax_c P(f(x + N(0, sigma^2 I)) = c)`` returns ``cert.label`` for
+    the image ``x(a)`` of every motion ``a`` in ``[-cert.radius, cert.radius]`` along ``axis``, where ``x(a)``
+    is the image the imaging model (docs/imaging.md) makes from ``cloud`` moved by ``a``. It rests on sound
+    per-segment bounds of the plan's grid (every image of a segment lies within ``D_i`` of an anchor frame)
+    and one-sided Clopper-Pearson bounds at Bonferroni level ``alpha / K`` over the ``K`` anchors, placed
+    before any estimation sample is drawn (``abstain``: the top class is not certified even at 0).
+
     ``intr`` is the input camera; frames are made by the imaging model of ``config.imaging`` (or the given
-    ``imaging``, see :mod:`.imaging`). ``cloud`` is the cloud that is rendered: the entire cloud for
-    ``pws`` (paper imaging only), the one-frame cloud for ``pws_of`` (``pws_l`` uses what it is given).
-    ``method='cms'`` runs the CMS baseline with the same imaging model. ``plan_out`` (a list) receives the
-    plan the certificate rests on (the given or planned one, refined by the adaptive anchors).
+    ``imaging``). ``cloud`` is the cloud that is rendered: the entire cloud for ``pws`` (paper imaging only),
+    the one-frame cloud for ``pws_of`` (``pws_l`` uses what it is given). ``method='cms'`` runs the CMS
+    baseline with the same imaging model. ``cert.plan`` is the plan the certificate rests on (the given or
+    planned one, refined by the adaptive anchors).
     """
     config = (config or CertifyConfig()).validate()
     axis = parse_axis(axis)
@@ -169,14 +177,12 @@ def certify(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, axis: str,
     rule = coverage_rule(config.coverage, config.num_anchors, imaging.kind)
     if rule.adaptive:
         cert = _certify_anchored(_RendererGeometry(renderer, config), plan, rule, model, config, denoiser, progress,
-                                 method, timings, t_start, plan_out)
+                                 method, timings, t_start)
     else:
         values = segment_bounds(renderer, cloud, imaging, plan.alphas, max_bytes=bounds_bytes(config))
         timings["bounds"] = time.perf_counter() - t0
         cert = _certify_stream(renderer.render_batch, renderer.iter_frames(plan.alphas, chunk=config.chunk), plan, values,
                                rule, model, config, denoiser, progress, method, timings, t_start)
-        if plan_out is not None:
-            plan_out.append(plan)
     cert.bounds["imaging"] = imaging.to_dict()
     cert.imaging = imaging.kind
     return cert
@@ -331,7 +337,7 @@ def _conclude(plan: Plan, centre: int, reach: float, est_pos: dict[int, int], p_
                        sigma=float(config.sigma), n0=int(config.n0), n=int(config.n if n_est is None else n_est), alpha=float(config.alpha),
                        num_bounds=len(p_lower), num_partitions=plan.num_partitions, delta_alpha=float(plan.delta_alpha),
                        frames_rendered=frames_rendered, classifier_calls=int(sc.calls), bounds=bounds, timings=timings,
-                       reason=reason, seed=int(config.seed))
+                       reason=reason, seed=int(config.seed), plan=plan)
 
 
 class _RendererGeometry:
@@ -457,8 +463,7 @@ def anchor_grid(cloud: Cloud, imaging: Imaging, plan: Plan, config: CertifyConfi
 
 def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: LoadedModel,
                       config: CertifyConfig, denoiser,
-                      progress, method: str, timings: dict[str, float], t_start: float,
-                      plan_out: list | None = None) -> Certificate:
+                      progress, method: str, timings: dict[str, float], t_start: float) -> Certificate:
     """Anchors from the distance profile (:mod:`.anchors`): the selection samples at alpha = 0 predict a target
     radius; the grid is refined where consecutive frames differ by more than a fraction of it; anchors are
     placed so that every segment lies within the target of one (sound bounds of :func:`.imaging.segment_hulls`);
@@ -493,8 +498,6 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     t_render += time.perf_counter() - t0
     N = plan.num_partitions
     centre = int(np.searchsorted(plan.alphas, 0.0))
-    if plan_out is not None:
-        plan_out.append(plan)
     t0 = time.perf_counter()
     hulls = geometry.bounds(plan)
     timings = dict(timings, bounds=timings.get("bounds", 0.0) + time.perf_counter() - t0)
@@ -543,8 +546,6 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
         plan = Plan(plan.method, plan.axis, plan.radius, float(np.diff(alphas).max()), len(alphas), alphas, plan.unit,
                     dict(plan.details, frontier_splits=len(splits)))
         centre = int(np.searchsorted(plan.alphas, 0.0))
-        if plan_out is not None:
-            plan_out[-1] = plan
     t_stats += time.perf_counter() - t1
     timings = dict(timings)
     timings.update(render=t_render, inference=sc.inference_seconds, statistics=t_stats)

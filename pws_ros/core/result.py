@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 from .jsonable import jsonable
@@ -49,6 +49,7 @@ class Certificate:
     seed: int | None = None
     imaging: str = ""                 # surfel | paper (core.imaging): what the certified frames are
     filled_points: int = 0            # points of the one-frame cloud whose depth was filled (depth_fill), not measured
+    plan: Any = field(default=None, repr=False, compare=False)   # the core.partition.Plan it rests on (not serialised)
     frame_alpha: float | None = None  # risk of the whole frame's statement (all its axes together)
 
     @property
@@ -56,7 +57,8 @@ class Certificate:
         return float(min(self.p_a_lower)) if self.p_a_lower else float("nan")
 
     def to_dict(self, full: bool = True) -> dict[str, Any]:
-        d = asdict(self)
+        d = asdict(replace(self, plan=None))
+        d.pop("plan")
         d["min_p_a_lower"] = self.min_p_a_lower
         if not full and len(self.p_a_lower) > 16:
             d["p_a_lower"] = f"{len(self.p_a_lower)} values, min {self.min_p_a_lower:.6g}"
