@@ -17,6 +17,11 @@ Risk and noise: the frame's statement (every axis together) holds with probabili
 loaded once. A ``cuda:N`` device that is not available falls back to the CPU with a warning sent to
 ``log``. Any failure of one axis becomes an ERROR certificate for that axis (never an exception):
 one bad axis or frame never stops a node.
+
+(Over the usual ~450 lines: the stages share the lazily loaded model, the configuration and the time
+budget's cost model. The budget's warm-ups, :meth:`FrameCertifier.warm_up_inference` and
+:meth:`FrameCertifier.warm_up_geometry`, are the seam where it would split next, into
+:mod:`pws_ros.bridge.budget`.)
 """
 from __future__ import annotations
 

@@ -20,6 +20,11 @@ The method on one screen (Theorems 1-3 of the paper with the per-segment bounds 
    (:func:`certify`), a covered run that stops inside a grid segment is extended by refining that segment
    once the radii are known (:func:`.coverage.frontier_reach`; coverage is a fact of the bounds on any
    grid); from received frames and bounds (:func:`certify_rendered`) it stops at the grid point.
+
+(One module over the usual ~450 lines on purpose: :func:`certify`, the two certification paths it
+dispatches to — every frame estimated, :func:`_certify_stream`, and the adaptive anchors,
+:func:`_certify_anchored` — and the grid refinement they share make one statistical argument whose parts
+must agree on the order of selection, placement and estimation.)
 """
 from __future__ import annotations
 
