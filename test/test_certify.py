@@ -342,3 +342,32 @@ def test_certify_returns_the_plan_it_rests_on_and_never_serialises_it():
     assert cert.plan is not None and cert.plan.num_partitions == cert.num_partitions and 0.0 in cert.plan.alphas
     d = cert.to_dict()
     assert "plan" not in d and json.loads(cert.to_json())["num_partitions"] == cert.num_partitions
+
+
+@pytest.mark.parametrize("axis", ["tz", "ry"])
+def test_refined_hulls_reuse_kept_segments_and_equal_a_fresh_bound(axis):
+    """The adaptive anchors refine a grid and bound only its new segments (core.certify.refined_hulls): the
+    result equals, bitwise, the bounds of the refined grid computed from scratch (a segment's bounds depend
+    on its two ends only), also where new segments come in several runs."""
+    from pws_ros.core.camera import CameraIntrinsics
+    from pws_ros.core.certify import refined_hulls
+    from pws_ros.core.cloud import cloud_from_rgbd
+    from pws_ros.core.imaging import hulls_within, make_imaging, make_renderer
+
+    cam = CameraIntrinsics(16, 12, 14.0, 15.0, 7.5, 5.5, "cam")
+    rng = np.random.default_rng(11)
+    depth = rng.uniform(0.8, 1.6, cam.shape)
+    depth[rng.random(cam.shape) < 0.2] = 0.0
+    cloud = cloud_from_rgbd(depth, rng.random(cam.shape + (3,)).astype(np.float32), cam)
+    im = make_imaging("surfel", cam, (3, 4), border=0, uncovered="frame")
+    b = 0.03
+    r = make_renderer(cloud, im, axis, alpha_range=(-b, b))
+    bounds_of = hulls_within(r, -b, b)
+    coarse = np.linspace(-b, b, 7)
+    coarse[3] = 0.0
+    fine = np.union1d(coarse, [-0.025, -0.021, 0.004, 0.006, 0.029])   # three runs of new segments
+    got = refined_hulls(bounds_of, coarse, bounds_of(coarse), fine)
+    want = hulls_within(r, -b, b)(fine)
+    for name in ("lo", "hi", "constant"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+    np.testing.assert_array_equal(got.alphas, fine)

@@ -353,6 +353,7 @@ class _RendererGeometry:
     def __init__(self, renderer: SurfelRenderer, config: CertifyConfig):
         self.renderer, self.config = renderer, config
         self._bounds_of = None
+        self._last = None   # the last grid bounded and its HullValues (a refinement bounds only its new segments)
 
     def frames(self, plan: Plan) -> np.ndarray:
         return self.renderer.render_batch(plan.alphas).cpu().numpy()
@@ -361,10 +362,15 @@ class _RendererGeometry:
         return refine_for_target(self.renderer, plan, frames, target, max_anchors, self.config)
 
     def bounds(self, plan: Plan):
-        # one sweep over the plan's range bounds its grid here and, later, the frontier's finer segments
-        self._bounds_of = hulls_within(self.renderer, float(plan.alphas[0]), float(plan.alphas[-1]),
-                                       max_bytes=bounds_bytes(self.config))
-        return self._bounds_of(plan.alphas)
+        # one sweep over the plan's range bounds its grid here, the new segments of a refinement of it (the
+        # bounds of a segment depend on its ends only) and, later, the frontier's finer segments
+        g = plan.alphas
+        if self._last is None or (self._last[0][0], self._last[0][-1]) != (g[0], g[-1]):
+            self._bounds_of = hulls_within(self.renderer, float(g[0]), float(g[-1]), max_bytes=bounds_bytes(self.config))
+            self._last = (g, self._bounds_of(g))
+        elif not np.array_equal(self._last[0], g):
+            self._last = (g, refined_hulls(self._bounds_of, *self._last, g))
+        return self._last[1]
 
     def frontier(self, anchor_frames: np.ndarray, R: np.ndarray, alphas: np.ndarray, covered: np.ndarray,
                  centre: int) -> tuple[float, list[float]]:
@@ -402,25 +408,51 @@ def refine_for_target(renderer: SurfelRenderer, plan: Plan, frames: np.ndarray, 
     """The plan refined where consecutive frames differ by more than ``target / REFINE_FRACTION``
     (:func:`.anchors.refine_plan`), and its frames (only the new poses rendered). Anchors cover about 2
     target radii of rendered path each: no refinement farther than the budget reaches; the refined grid
-    stays within :func:`grid_cap` less ``reserve`` points (never below the plan's own size).
-
-    Up to ``REFINE_ROUNDS`` rounds, each on the frames the last one rendered: on a real camera frame many
-    small pixel changes add up, so the distance between a segment's end frames shrinks like the square root
-    of its length, not in proportion, and one split leaves its parts still far apart (RealSense frame, ry:
-    one round 5% of the requested radius, three 66%, a constant classifier at 160x90)."""
-    cap = max(len(frames), grid_cap(renderer.imaging, config) - int(reserve))
-    for _ in range(REFINE_ROUNDS):
-        coarse = plan
-        plan = refine_plan(plan, frames, target / REFINE_FRACTION, cap, reach=(max_anchors + 1) * target)
-        if len(plan.alphas) == len(frames):
-            break
-        old = np.searchsorted(plan.alphas, coarse.alphas)   # render only the new poses
+    stays within :func:`grid_cap` less ``reserve`` points (never below the plan's own size). One round;
+    :func:`_certify_anchored` asks for more where the anchors fall short."""
+    coarse = plan
+    plan = refine_plan(plan, frames, target / REFINE_FRACTION, max(len(frames), grid_cap(renderer.imaging, config) - int(reserve)),
+                       reach=(max_anchors + 1) * target)
+    if len(plan.alphas) != len(frames):  # render only the new poses
+        old = np.searchsorted(plan.alphas, coarse.alphas)
         new = np.setdiff1d(np.arange(len(plan.alphas)), old)
         full = np.empty((len(plan.alphas),) + frames.shape[1:], dtype=frames.dtype)
         full[old] = frames
         full[new] = renderer.render_batch(plan.alphas[new]).cpu().numpy()
         frames = full
     return plan, frames
+
+
+def _predicted_reach(rule: AdaptiveAnchorsRule, anchor_rows: dict[int, np.ndarray], est_idx: np.ndarray, plan: Plan,
+                     centre: int, radius: float) -> float:
+    """The radius the placed anchors would cover if each got the Cohen radius ``radius`` (a planning value)."""
+    if radius <= 0:
+        return 0.0
+    D2 = np.stack([anchor_rows[int(a)] for a in est_idx])
+    return rule.radius(np.full(len(est_idx), float(radius)), D2, plan.alphas, centre)[0]
+
+
+def refined_hulls(bounds_of, old_grid: np.ndarray, old, grid: np.ndarray):
+    """The HullValues of ``grid`` from those of ``old_grid`` (``old``): a segment of ``grid`` that is a segment
+    of ``old_grid`` keeps its bounds (they depend on its two ends only); the runs of new segments are bounded
+    by ``bounds_of`` (:func:`.imaging.hulls_within` over the same range)."""
+    S = len(grid) - 1
+    i = np.searchsorted(old_grid, grid[:-1])
+    ok = i < len(old_grid) - 1
+    kept = np.zeros(S, bool)
+    kept[ok] = (old_grid[i[ok]] == grid[:-1][ok]) & (old_grid[i[ok] + 1] == grid[1:][ok])
+    lo = np.empty((S,) + old.lo.shape[1:], old.lo.dtype)
+    hi = np.empty_like(lo)
+    constant = np.empty((S,) + old.constant.shape[1:], bool)
+    lo[kept], hi[kept], constant[kept] = old.lo[i[kept]], old.hi[i[kept]], old.constant[i[kept]]
+    new = np.flatnonzero(~kept)
+    if len(new):
+        starts = new[np.r_[True, np.diff(new) > 1]]
+        ends = new[np.r_[np.diff(new) > 1, True]] + 1
+        for s, e in zip(starts, ends):
+            part = bounds_of(grid[s:e + 1])
+            lo[s:e], hi[s:e], constant[s:e] = part.lo, part.hi, part.constant
+    return HullValues(grid, lo, hi, constant, dict(old.details, segments=S))
 
 
 def largest_target(config: CertifyConfig) -> float:
@@ -501,18 +533,46 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     if target > 0:
         plan, frames = geometry.refine(plan, frames, target, max_anchors)
     t_render += time.perf_counter() - t0
-    N = plan.num_partitions
-    centre = int(np.searchsorted(plan.alphas, 0.0))
-    t0 = time.perf_counter()
-    hulls = geometry.bounds(plan)
-    timings = dict(timings, bounds=timings.get("bounds", 0.0) + time.perf_counter() - t0)
-    t1 = time.perf_counter()
+    t_stats = 0.0
+
     def row(jj: int, i0: int = 0, i1: int | None = None) -> np.ndarray:
         return hulls.dist_sq(frames[jj], slice(i0, i1))
 
-    anchor_rows: dict[int, np.ndarray] = {}
-    est_idx = rule.place(row, plan.alphas, centre, target, rows_out=anchor_rows)
-    t_stats = time.perf_counter() - t1
+    # Anchors on the refined grid; where they cannot cover the requested radius at the target, the grid is
+    # refined REFINE_ROUNDS - 1 rounds more (each on the frames the last one rendered; only the new segments
+    # are bounded) and the anchors placed again: on a real camera frame many small pixel changes add up, so
+    # the end frames of a split segment stay far apart (distance grows like the square root of the motion;
+    # RealSense frame, ry: one round 5% of the requested radius, three 66%, a constant classifier at 160x90).
+    # A frame covered after one round pays for no more. Only the bounds and the selection samples are used:
+    # the anchors are fixed before any estimation sample is drawn.
+    # Of the two placements the one whose anchors would cover more (each at the Cohen radius the selection
+    # predicts at its own Bonferroni level alpha / K: more anchors, each a little weaker) is kept.
+    best = None
+    for attempt in (1, 2):
+        t0 = time.perf_counter()
+        hulls = geometry.bounds(plan)
+        timings = dict(timings, bounds=timings.get("bounds", 0.0) + time.perf_counter() - t0)
+        t1 = time.perf_counter()
+        centre = int(np.searchsorted(plan.alphas, 0.0))
+        anchor_rows: dict[int, np.ndarray] = {}
+        est_idx = rule.place(row, plan.alphas, centre, target, rows_out=anchor_rows)
+        predicted = _predicted_reach(rule, anchor_rows, est_idx, plan, centre,
+                                     target_radius(int(counts0[0, label]), int(config.n0), n_est, config.sigma, config.alpha, len(est_idx)))
+        if best is None or predicted > best[0]:
+            best = (predicted, plan, frames, hulls, centre, est_idx, anchor_rows)
+        t_stats += time.perf_counter() - t1
+        if target <= 0 or attempt == 2 or predicted >= plan.radius:
+            break
+        t0 = time.perf_counter()
+        finer, finer_frames = plan, frames
+        for _ in range(REFINE_ROUNDS - 1):
+            finer, finer_frames = geometry.refine(finer, finer_frames, target, max_anchors)
+        t_render += time.perf_counter() - t0
+        if len(finer.alphas) == len(plan.alphas):
+            break
+        plan, frames = finer, finer_frames
+    _, plan, frames, hulls, centre, est_idx, anchor_rows = best
+    N = plan.num_partitions
     K = len(est_idx)
     # the K anchors share their n noise draws (common random numbers: each bound holds, Bonferroni needs no
     # independence between them; SmoothedClassifier.sample_counts)
