@@ -290,36 +290,29 @@ def covered_pairs(umin, umax, vmin, vmax, mask, samples: SamplePoints, eps: floa
                 f"the surfels of this frame can cover {total} pixel-surfel pairs in one batch, more than the "
                 f"{MAX_COVERED_PAIRS} (about {MAX_COVERED_PAIRS * PAIR_BYTES / 2**20:.0f} MiB) one frame may hold: "
                 "points very near the camera plane or implausible coordinates (check the input cloud)")
-        # enumerated in pieces of about PAIR_CHUNK pixels (memory stays bounded whatever the boxes)
+        # enumerated in pieces of about PAIR_CHUNK pixels (memory stays bounded whatever the boxes): piece k
+        # ends at the first box whose running pixel count reaches (k + 1) PAIR_CHUNK
         ends = torch.cumsum(counts, 0)
-        cuts = torch.searchsorted(ends, torch.arange(PAIR_CHUNK, int(ends[-1]) + PAIR_CHUNK, PAIR_CHUNK, device=dev))
-        start = 0
-        for stop in sorted(set(int(c) for c in cuts.clamp_(max=len(more) - 1).tolist())):
-            _rest_of_boxes(more[start:stop + 1], nc, nr, base, batch_base, W, samples, inside,
-                           (lo_u, hi_u, lo_v, hi_v), inner, P, points, wheres, insides)
-            start = stop + 1
+        marks = torch.arange(PAIR_CHUNK, int(ends[-1]) + PAIR_CHUNK, PAIR_CHUNK, device=dev)
+        stops = torch.unique(torch.searchsorted(ends, marks).clamp_(max=len(more) - 1)).tolist()
+        for start, stop in zip([0] + [s + 1 for s in stops[:-1]], stops):
+            piece = more[start:stop + 1]
+            cnt = nc[piece] * nr[piece]
+            rep = torch.repeat_interleave(torch.arange(len(piece), device=dev), cnt)
+            t = torch.arange(int(cnt.sum()), device=dev) - (torch.cumsum(cnt, 0) - cnt)[rep]
+            f, ncr = piece[rep], nc[piece][rep]
+            dr, dc = torch.div(t, ncr, rounding_mode="floor"), t % ncr
+            rest = (dr > 1) | (dc > 1)
+            f, off = f[rest], dr[rest] * W + dc[rest]
+            pix = base[f] + off
+            su, sv = samples.su[pix], samples.sv[pix]
+            ok = inside(su, sv, (lo_u, hi_u, lo_v, hi_v), f)
+            f, off, su, sv = f[ok], off[ok], su[ok], sv[ok]
+            points.append(f % P)
+            wheres.append(batch_base[f] + off)
+            if inner is not None:
+                insides.append(inside(su, sv, inner, f))
     return torch.cat(points), torch.cat(wheres), (torch.cat(insides) if inner is not None else None)
-
-
-def _rest_of_boxes(more, nc, nr, base, batch_base, W, samples, inside, boxes, inner, P, points, wheres, insides):
-    """The pixels of boxes ``more`` beyond their 2x2 corner whose sample lies in the box (appended)."""
-    dev = more.device
-    if len(more):
-        cnt = nc[more] * nr[more]
-        rep = torch.repeat_interleave(torch.arange(len(more), device=dev), cnt)
-        t = torch.arange(int(cnt.sum()), device=dev) - (torch.cumsum(cnt, 0) - cnt)[rep]
-        f, ncr = more[rep], nc[more][rep]
-        dr, dc = torch.div(t, ncr, rounding_mode="floor"), t % ncr
-        rest = (dr > 1) | (dc > 1)
-        f, off = f[rest], dr[rest] * W + dc[rest]
-        pix = base[f] + off
-        su, sv = samples.su[pix], samples.sv[pix]
-        ok = inside(su, sv, boxes, f)
-        f, off, su, sv = f[ok], off[ok], su[ok], sv[ok]
-        points.append(f % P)
-        wheres.append(batch_base[f] + off)
-        if inner is not None:
-            insides.append(inside(su, sv, inner, f))
 
 
 class FootprintSweep:
