@@ -18,7 +18,7 @@ import pytest
 from pws_ros.bridge import msgbuild, msgconv, scheme
 from pws_ros.bridge.assembly import PartitionAssembler
 from pws_ros.core.errors import PwsError
-from test_nodes_logic import T, T0, Bus, Context, four_nodes, frame_messages, params, stamps_of, wait_for
+from test_nodes_logic import T, T0, Bus, Context, bus, four_nodes, frame_messages, params, stamps_of, wait_for  # noqa: F401 (bus: a fixture)
 
 MS = 1_000_000
 A, B = T0, T0 + 100 * MS     # the hostile frame, then a valid one
@@ -214,14 +214,6 @@ def test_malformed_messages_that_name_no_frame_are_warned_not_certified(bus, mod
         assert any(m.startswith("plan: ignoring a message: plan stamp_ns must be an integer") for m in warns), warns
     finally:
         node.close()
-
-
-@pytest.fixture
-def bus():
-    b = Bus()
-    yield b
-    b.close()
-    assert not b.errors, b.errors
 
 
 # ---- the parsers' refusals (ROS-free) ----
