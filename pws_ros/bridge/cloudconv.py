@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
-from ..core.cloud import DEPTH_FILLS, Cloud, fill_depth
+from ..core.cloud import DEPTH_FILLS, Cloud, fill_depth, require_valid_share
 from ..core.errors import PwsError, require
 from .msgconv import as_byte_array, byte_rows, frame_id_of, intrinsics_from_camera_info
 
@@ -256,9 +256,7 @@ def cloud_and_intrinsics_from_pointcloud2(msg: Any, info_msg: Any | None = None,
         if depth_fill == "row":
             cloud = fill_organized(conv.arrays, intr, min_valid=min_valid)
         else:
-            share = float(conv.arrays.valid.mean()) if len(conv.arrays.valid) else 0.0
-            require(share >= min_valid, f"only {share:.1%} of the organized cloud's points are valid, below min_valid_depth "
-                                        f"{min_valid:.1%}: too little is measured to describe a scene")
+            require_valid_share(conv.arrays.valid, min_valid, "the organized cloud's points have")
     return cloud, intr, conv.has_color
 
 

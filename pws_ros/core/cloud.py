@@ -85,6 +85,14 @@ def valid_depth(depth: np.ndarray) -> np.ndarray:
         return np.isfinite(depth) & (depth > 0)
 
 
+def require_valid_share(valid: np.ndarray, min_valid: float, what: str = "the depth image's pixels have") -> None:
+    """PwsError when less than ``min_valid`` (a share in [0, 1]) of ``valid`` is True: too little is measured
+    to describe a scene (``min_valid_depth``)."""
+    share = float(valid.mean()) if valid.size else 0.0
+    require(share >= min_valid, f"only {share:.1%} of {what} a valid depth, below min_valid_depth "
+                                f"{min_valid:.1%}: too little is measured to describe a scene")
+
+
 def _fill_rows(depth: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Every invalid pixel of a row with a valid pixel gets the larger (farther) depth of the nearest
     valid pixels to its left and right in the row (the one that exists, near the row's ends)."""
@@ -115,10 +123,8 @@ def fill_depth(depth: np.ndarray, *, min_valid: float = 0.0) -> tuple[np.ndarray
     depth = np.asarray(depth, dtype=np.float64)
     require(depth.ndim == 2 and depth.size > 0, f"depth must be a non-empty 2-D image, got shape {depth.shape}")
     valid = valid_depth(depth)
-    share = float(valid.mean())
-    require(share > 0, "the depth image has no valid pixel (every depth is 0, NaN, inf or negative)")
-    require(share >= min_valid, f"only {share:.1%} of the depth image's pixels have a valid depth, below min_valid_depth "
-                                f"{min_valid:.1%}: too little is measured to describe a scene")
+    require(bool(valid.any()), "the depth image has no valid pixel (every depth is 0, NaN, inf or negative)")
+    require_valid_share(valid, min_valid)
     out, ok = _fill_rows(depth, valid)
     if not ok.all():
         cols_out, cols_ok = _fill_rows(out.T, ok.T)
@@ -147,10 +153,8 @@ def cloud_from_rgbd(depth_m: np.ndarray, rgb: np.ndarray, intr: CameraIntrinsics
     if fill == "row":
         depth, was_filled = fill_depth(depth, min_valid=min_valid)
         num_filled = int(was_filled.sum())
-    elif min_valid > 0:
-        share = float(valid_depth(depth).mean()) if depth.size else 0.0
-        require(share >= min_valid, f"only {share:.1%} of the depth image's pixels have a valid depth, below min_valid_depth "
-                                    f"{min_valid:.1%}: too little is measured to describe a scene")
+    else:
+        require_valid_share(valid_depth(depth), min_valid)
     valid = valid_depth(depth)
     rows, cols = np.nonzero(valid)
     z = depth[rows, cols]
