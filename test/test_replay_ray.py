@@ -148,7 +148,6 @@ def _certify_pids() -> list[int]:
     return pids
 
 
-@pytest.mark.skipif(not os.path.isdir("/proc"), reason="finds the Ray worker's pid in /proc")
 def test_a_worker_killed_mid_run_loses_no_frame_and_writes_none_twice(local_ray, bag, model, serial, tmp_path):
     out = tmp_path / "out"
     rr = RayReplay(options(bag, model, out), workers=2)
