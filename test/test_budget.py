@@ -4,6 +4,7 @@ the budget and the measured costs only), the sizes fixed before any sample is dr
 that fits leave certificates unchanged, and a deliberately slow classifier keeps a frame within its budget."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
@@ -95,7 +96,7 @@ def test_the_cost_model_moves_towards_what_it_observes():
         timings = {"inference": 0.0, "render": 0.1, "bounds": 0.1, "statistics": 0.0}
 
     Cert.timings["inference"] = 0.5 * c.inference_s(64, 4, 256, 64)   # twice as fast as predicted
-    before = c.to_dict()
+    before = dataclasses.asdict(c)
     c.observe(Cert, wall_s=0.2 + Cert.timings["inference"] + 0.3, batch_size=64)
     assert c.image_s < before["image_s"] and c.batch_s < before["batch_s"]
     assert c.point_s == pytest.approx((1 - B.EMA_WEIGHT) * 0.02 + B.EMA_WEIGHT * 0.2 / 40)

@@ -110,9 +110,6 @@ class CostModel:
         self.fixed_s = (1 - w) * self.fixed_s + w * max(0.0, fixed)
         self.updates += 1
 
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
 
 @dataclass(frozen=True)
 class Sizes:

@@ -29,7 +29,7 @@ import math
 import threading
 import time
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any, Callable
 
 import numpy as np
@@ -508,7 +508,7 @@ class FrameCertifier:
             "predicted_s": float(sizes.predicted_s), "reduced": bool(sizes.reduced), "fits": bool(sizes.fits),
             "n0": int(sizes.n0), "num_anchors": int(sizes.num_anchors), "n": int(sizes.n), "max_partitions": int(sizes.max_partitions),
             "configured": {"n0": int(c.n0), "num_anchors": int(c.num_anchors), "n": int(c.n), "max_partitions": int(c.max_partitions)},
-            "costs": {k: float(v) for k, v in self.costs.to_dict().items()},
+            "costs": {k: float(v) for k, v in asdict(self.costs).items()},
         }
 
 

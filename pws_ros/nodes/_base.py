@@ -83,6 +83,15 @@ class Worker:
         self.thread.join(timeout)
 
 
+class WorkerNode:
+    """A node's logic around one :class:`Worker` (``self.worker``): closing the node closes it."""
+
+    worker: Worker
+
+    def close(self) -> None:
+        self.worker.close()
+
+
 class ShutdownSafePublisher:
     """A publisher that does nothing once the ROS context is shut down.
 

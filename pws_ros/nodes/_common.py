@@ -6,14 +6,14 @@ from __future__ import annotations
 import importlib.util
 import sys
 import time
-from typing import Any, Callable
+from typing import Any, Callable, NoReturn
 
 from ..bridge import msgbuild, msgconv
 from ..bridge.config import depth_info_topic
 from ..bridge.inputs import InputAssembler, RawFrame
 from ..core.errors import PwsError
 from ..core.registration import Extrinsic, chain_transform
-from ._base import TF_MESSAGE_TYPE, ShutdownSafePublisher, Worker, still_running_workers  # noqa: F401 - re-exported
+from ._base import TF_MESSAGE_TYPE, ShutdownSafePublisher, Worker, WorkerNode, still_running_workers  # noqa: F401 - re-exported
 
 ROS_MISSING = ("rclpy (ROS 2 Jazzy) is not importable: install ROS 2 Jazzy and `source /opt/ros/jazzy/setup.bash` "
                "(then build this package with colcon); without ROS use the `pws` command")
@@ -32,6 +32,16 @@ def start(node_name: str, logic_class: Callable[..., Any], args: list[str] | Non
     from . import _ros
 
     return _ros.run(node_name, lambda node: logic_class(_ros.NodeContext(node, node_name)), args)
+
+
+def entry_point(node_name: str, logic_class: Callable[..., Any]) -> Callable[[list[str] | None], NoReturn]:
+    """A node's console script (setup.py's ``<node> = pws_ros.nodes.<node>:main``): runs
+    :func:`start` and exits with its status."""
+    def main(args: list[str] | None = None) -> NoReturn:
+        sys.exit(start(node_name, logic_class, args))
+
+    main.__doc__ = f"Run the {node_name} node (exit status 2 on a start-up error)."
+    return main
 
 
 class PosePublishers:

@@ -19,7 +19,6 @@ stamp + frame id, one status ``pws/<axis>`` per axis; key schema in :mod:`pws_ro
 """
 from __future__ import annotations
 
-import sys
 from collections import OrderedDict
 from dataclasses import replace
 from typing import Any
@@ -27,14 +26,14 @@ from typing import Any
 from ..bridge import msgbuild, outputs, scheme
 from ..bridge.assembly import AssembledFrame, PartitionAssembler
 from ..core.errors import PwsError
-from ._common import HealthPublisher, Throttle, Worker, guarded, jump_logger, start
+from ._common import HealthPublisher, Throttle, Worker, guarded, jump_logger, entry_point, WorkerNode
 
 NODE_NAME = "certifier"
 POLL_S = 0.05
 MAX_BUNDLES = 16
 
 
-class CertifierNode:
+class CertifierNode(WorkerNode):
     def __init__(self, ctx: Any):
         from ..bridge.engine import FrameCertifier
 
@@ -204,12 +203,8 @@ class CertifierNode:
                           "late_messages": self.assembler.late, "bad_messages": self.bad_messages,
                           "time_jumps_back": self.assembler.time_jumps}}
 
-    def close(self) -> None:
-        self.worker.close()
 
-
-def main(args: list[str] | None = None) -> None:
-    sys.exit(start(NODE_NAME, CertifierNode, args))
+main = entry_point(NODE_NAME, CertifierNode)
 
 
 if __name__ == "__main__":

@@ -11,18 +11,17 @@ certification, as the pipeline node publishes it for bad input.
 """
 from __future__ import annotations
 
-import sys
 from typing import Any
 
 from ..bridge import msgbuild, scheme
 from ..bridge.inputs import RawFrame, convert
 from ..core.errors import PwsError
-from ._common import HealthPublisher, InputFrontend, Worker, start
+from ._common import HealthPublisher, InputFrontend, Worker, entry_point, WorkerNode
 
 NODE_NAME = "cloud_listener"
 
 
-class CloudListenerNode:
+class CloudListenerNode(WorkerNode):
     def __init__(self, ctx: Any):
 
         self.ctx = ctx
@@ -63,12 +62,8 @@ class CloudListenerNode:
                 "warning": w.last_error, "extra": {"input_messages": self.frontend.received, "time_jumps_back": self.frontend.time_jumps,
                                                 "failed_inputs": self.failed}}
 
-    def close(self) -> None:
-        self.worker.close()
 
-
-def main(args: list[str] | None = None) -> None:
-    sys.exit(start(NODE_NAME, CloudListenerNode, args))
+main = entry_point(NODE_NAME, CloudListenerNode)
 
 
 if __name__ == "__main__":

@@ -16,18 +16,17 @@ message is a throttled WARN naming the topic; no callback raises.
 """
 from __future__ import annotations
 
-import sys
 from typing import Any
 
 from ..bridge import cloudconv, msgbuild, msgconv, scheme
 from ..bridge.sync import StampMatcher
 from ..core.errors import PwsError, require
-from ._common import HealthPublisher, PosePublishers, Throttle, Worker, guarded, jump_logger, stage_engine, start
+from ._common import HealthPublisher, PosePublishers, Throttle, Worker, guarded, jump_logger, stage_engine, entry_point, WorkerNode
 
 NODE_NAME = "partition_planner"
 
 
-class PartitionPlannerNode:
+class PartitionPlannerNode(WorkerNode):
     def __init__(self, ctx: Any):
         self.ctx = ctx
         T = ctx.types
@@ -98,12 +97,8 @@ class PartitionPlannerNode:
                 "last_error": "", "warning": w.last_error, "extra": {"time_jumps_back": self.matcher.time_jumps,
                                                                        "failed_inputs": self.failed_inputs}}
 
-    def close(self) -> None:
-        self.worker.close()
 
-
-def main(args: list[str] | None = None) -> None:
-    sys.exit(start(NODE_NAME, PartitionPlannerNode, args))
+main = entry_point(NODE_NAME, PartitionPlannerNode)
 
 
 if __name__ == "__main__":

@@ -19,19 +19,18 @@ source header, one status ``pws/<axis>`` per axis; key schema in :mod:`pws_ros.b
 """
 from __future__ import annotations
 
-import sys
 from typing import Any
 
 from ..bridge import outputs
 from ..bridge.inputs import RawFrame, convert
 from ..bridge.workers import StampAssignment, set_torch_threads
 from ..core.errors import PwsError
-from ._common import HealthPublisher, InputFrontend, Worker, start
+from ._common import HealthPublisher, InputFrontend, Worker, entry_point, WorkerNode
 
 NODE_NAME = "pipeline"
 
 
-class PipelineNode:
+class PipelineNode(WorkerNode):
     """The logic of the pipeline node, composed around an rclpy ``Node``."""
 
     def __init__(self, ctx: Any):
@@ -110,12 +109,8 @@ class PipelineNode:
                       "time_jumps_back": self.frontend.time_jumps, "other_workers_frames": self.other_workers},
         }
 
-    def close(self) -> None:
-        self.worker.close()
 
-
-def main(args: list[str] | None = None) -> None:
-    sys.exit(start(NODE_NAME, PipelineNode, args))
+main = entry_point(NODE_NAME, PipelineNode)
 
 
 if __name__ == "__main__":

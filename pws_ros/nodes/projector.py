@@ -14,7 +14,6 @@ such frame. A malformed message is a throttled WARN naming the topic; no callbac
 """
 from __future__ import annotations
 
-import sys
 import threading
 from collections import OrderedDict
 from typing import Any
@@ -22,13 +21,13 @@ from typing import Any
 from ..bridge import cloudconv, msgbuild, msgconv, scheme
 from ..bridge.preview import preview_frames
 from ..core.errors import PwsError, require
-from ._common import HealthPublisher, Throttle, Worker, guarded, stage_engine, start
+from ._common import HealthPublisher, Throttle, Worker, guarded, stage_engine, entry_point, WorkerNode
 
 NODE_NAME = "projector"
 CLOUD_WAIT_S = 2.0
 
 
-class ProjectorNode:
+class ProjectorNode(WorkerNode):
     def __init__(self, ctx: Any):
         self.ctx = ctx
         T = ctx.types
@@ -118,13 +117,12 @@ class ProjectorNode:
                 "extra": {"frames_published": self.frames_published}}
 
     def close(self) -> None:
-        self.worker.close()
+        super().close()
         with self._cloud_cond:
             self._cloud_cond.notify_all()
 
 
-def main(args: list[str] | None = None) -> None:
-    sys.exit(start(NODE_NAME, ProjectorNode, args))
+main = entry_point(NODE_NAME, ProjectorNode)
 
 
 if __name__ == "__main__":
