@@ -39,7 +39,7 @@ def target_radius(k0: int, n0: int, n: int, sigma: float, alpha: float, max_anch
     return TARGET_MARGIN * float(cohen_radius(p, sigma))
 
 
-ROW_BLOCK = 32         # segments per lazily computed piece of a candidate's distance row
+ROW_BLOCK = 8          # segments per lazily computed piece of a candidate's distance row
 
 
 def place_anchors(dist_sq_row: Callable[..., np.ndarray], alphas: np.ndarray, centre: int, target_sq: float,
