@@ -1,6 +1,6 @@
 """What the commands say matches what they do: an empty --depth-info-topic turns the registration
-check off, the cms setup line names no coverage rule, `pws plan --method pws` warns on a one-frame
-cloud, and --max-partitions says what happens to a too-big plan."""
+check off, the cms setup line names no coverage rule, `pws plan` and `pws certify` with --method pws warn on
+a one-frame cloud, and --max-partitions says what happens to a too-big plan."""
 from __future__ import annotations
 
 import numpy as np
@@ -56,7 +56,7 @@ def _write_scene(tmp_path, cloud: Cloud, cam: CameraIntrinsics, name: str):
             "--radius", "0.002", "--json"]
 
 
-def test_plan_pws_warns_on_a_one_frame_cloud(tmp_path, capsys):
+def test_plan_pws_warns_on_a_one_frame_cloud(tmp_path, capsys, models):  # noqa: F811
     from pws_ros.sim.world import render_view
 
     v = render_view(0, 0, 32, 24, samples_per_pixel=4.0)
@@ -68,6 +68,11 @@ def test_plan_pws_warns_on_a_one_frame_cloud(tmp_path, capsys):
     assert "needs the entire scene cloud" not in capsys.readouterr().err
     assert cli.main(one + ["--method", "pws_of"]) == 0
     assert "entire scene" not in capsys.readouterr().err
+    # pws certify loads its scene the same way: the same warning for method pws, none for pws_of
+    certify = ["certify"] + one[1:-1] + ["--model", str(models["linear"]), "--n0", "8", "--n", "16", "--quiet"]
+    for method, warned in (("pws", True), ("pws_of", False)):
+        assert cli.main(certify + ["--method", method] + (["--imaging", "paper"] if method == "pws" else [])) == 0
+        assert ("pws certify: warning: method pws needs the entire scene cloud" in capsys.readouterr().err) is warned
     # brute force: the one-frame cloud has one point per pixel at most, all inside the image
     seen = set()
     for x, y, z in np.asarray(v.one_frame.points, dtype=np.float64):

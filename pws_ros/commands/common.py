@@ -8,6 +8,8 @@ import sys
 from collections.abc import Sequence
 from typing import Any, Callable
 
+import numpy as np
+
 from ..core.camera import CameraIntrinsics
 from ..core.certify import COVERAGES, CertifyConfig
 from ..core.cloud import Cloud
@@ -143,9 +145,36 @@ def config_from_args(args) -> CertifyConfig:
                          render_factor=getattr(args, "render_factor", DEFAULT_RENDER_FACTOR)).validate()
 
 
+ONE_FRAME_WARNING = ("warning: method pws needs the entire scene cloud (every surface that can come into view or be "
+                     "uncovered over the motion range), but this cloud looks like a one-frame cloud (every point inside the "
+                     "image, at most one per pixel): a plan or certificate is sound only for the entire cloud; use --method pws_of for a "
+                     "one-frame cloud")
+
+
+def looks_like_one_frame(cloud: Cloud, intr: CameraIntrinsics) -> bool:
+    """True when ``cloud`` is what one camera frame sees: every point in front of the camera and
+    inside its image, at most one per pixel (a cloud back-projected from one depth image). The
+    entire scene cloud of method pws also holds what lies outside the image or hidden behind."""
+    pts = np.asarray(cloud.points, dtype=np.float64)
+    z = pts[:, 2]
+    if not np.all(z > 0):
+        return False
+    col = np.floor(intr.fx * pts[:, 0] / z + intr.cx + 0.5)
+    row = np.floor(intr.fy * pts[:, 1] / z + intr.cy + 0.5)
+    inside = (col >= 0) & (col < intr.width) & (row >= 0) & (row < intr.height)
+    if not np.all(inside):
+        return False
+    per_pixel = np.bincount((row * intr.width + col).astype(np.int64), minlength=intr.width * intr.height)
+    return int(per_pixel.max()) <= 1
+
+
 def load_scene(args) -> tuple[Cloud, CameraIntrinsics]:
+    """The cloud and camera of ``--cloud`` / ``--camera``; warns (stderr) when ``--method pws`` gets a
+    one-frame cloud."""
     cloud = Cloud.load(args.cloud).require_nonempty()
     intr = CameraIntrinsics.from_yaml(args.camera)
+    if getattr(args, "method", None) == "pws" and looks_like_one_frame(cloud, intr):
+        print(f"pws {getattr(args, 'command', '')}: {ONE_FRAME_WARNING}", file=sys.stderr)
     return cloud, intr
 
 

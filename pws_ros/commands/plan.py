@@ -1,36 +1,8 @@
 """``pws plan``: the uniform partition of the motion range (PwS / PwS-L / PwS-OF)."""
 from __future__ import annotations
 
-import sys
-
-import numpy as np
-
-from ..core.camera import CameraIntrinsics
-from ..core.cloud import Cloud
 from ..core.imaging import make_imaging, plan_for
 from .common import add_imaging_size_arg, add_plan_args, add_scene_args, emit, load_scene
-
-ONE_FRAME_WARNING = ("pws plan: warning: method pws needs the entire scene cloud (every surface that can come into view or be "
-                     "uncovered over the motion range), but this cloud looks like a one-frame cloud (every point inside the "
-                     "image, at most one per pixel): the plan is sound only for the entire cloud; use --method pws_of for a "
-                     "one-frame cloud")
-
-
-def looks_like_one_frame(cloud: Cloud, intr: CameraIntrinsics) -> bool:
-    """True when ``cloud`` is what one camera frame sees: every point in front of the camera and
-    inside its image, at most one per pixel (a cloud back-projected from one depth image). The
-    entire scene cloud of method pws also holds what lies outside the image or hidden behind."""
-    pts = np.asarray(cloud.points, dtype=np.float64)
-    z = pts[:, 2]
-    if not np.all(z > 0):
-        return False
-    col = np.floor(intr.fx * pts[:, 0] / z + intr.cx + 0.5)
-    row = np.floor(intr.fy * pts[:, 1] / z + intr.cy + 0.5)
-    inside = (col >= 0) & (col < intr.width) & (row >= 0) & (row < intr.height)
-    if not np.all(inside):
-        return False
-    per_pixel = np.bincount((row * intr.width + col).astype(np.int64), minlength=intr.width * intr.height)
-    return int(per_pixel.max()) <= 1
 
 
 def register(sub) -> None:
@@ -47,8 +19,6 @@ def register(sub) -> None:
 
 def run(args) -> int:
     cloud, intr = load_scene(args)
-    if args.method == "pws" and looks_like_one_frame(cloud, intr):
-        print(ONE_FRAME_WARNING, file=sys.stderr)
     im = make_imaging(args.imaging, intr, args.size, border=args.border, cloud=cloud, radii={args.axis: args.radius},
                       render_factor=args.render_factor)
     plan = plan_for(cloud, im, args.axis, args.radius, args.method, step_px=args.step_px, delta=args.delta,
