@@ -240,26 +240,99 @@ def test_help_explains(capsys):
         assert words in text, words
 
 
-def test_benchmark_script_runs_on_a_tiny_model(tmp_path, capsys):
-    """pws_ros.bench.finetune_bench end to end on a synthetic TUM-format sequence and a tiny model
-    (the EfficientNet-Lite0 run itself is too long for the test machine)."""
+def _tiny_bench(tmp_path, extra=()):
     import torch.nn as nn
 
-    from pws_ros.bench.finetune_bench import main as bench_main
+    import cv2
+
     from pws_ros.core.model import save_model
     from test_rgbd_sequence import tum_folder
 
-    tum_folder(tmp_path / "seq", n=5)
-    net = nn.Sequential(nn.Conv2d(3, 4, 3, 2, 1), nn.BatchNorm2d(4), nn.ReLU(), nn.AdaptiveAvgPool2d(1), nn.Flatten(), nn.Linear(4, 3))
-    model = save_model(net, tmp_path / "tiny.pt", ["a", "b", "c"], input_size=(18, 32))
-    rc = bench_main([str(tmp_path / "seq"), "--work", str(tmp_path / "work"), "--model", str(model), "--sigmas", "0.5",
-                     "--frames", "5", "--eval-samples", "8", "--epochs", "1", "--views", "1", "--holdout", "0.4",
-                     "--eval", str(tmp_path / "work" / "sequence"), "--json", "--border", "0", "--config", str(REPO / "config" / "pws.yaml")])
+    if not (tmp_path / "seq").exists():
+        tum_folder(tmp_path / "seq", n=5)
+        ramp = (5000 + 80 * np.arange(64)[None, :] + 40 * np.arange(48)[:, None]).astype(np.uint16)   # 1.0 - 1.7 m, smooth
+        for f in (tmp_path / "seq" / "depth").glob("*.png"):
+            cv2.imwrite(str(f), ramp)
+    if not (tmp_path / "tiny.pt").exists():
+        torch.manual_seed(0)
+        net = nn.Sequential(nn.Conv2d(3, 4, 3, 2, 1), nn.BatchNorm2d(4), nn.ReLU(), nn.AdaptiveAvgPool2d(1), nn.Flatten(), nn.Linear(4, 3))
+        save_model(net, tmp_path / "tiny.pt", ["a", "b", "c"], input_size=(18, 32))
+    return [str(tmp_path / "seq"), "--work", str(tmp_path / "work"), "--model", str(tmp_path / "tiny.pt"), "--sigmas", "0.5",
+            "--frames", "5", "--eval-samples", "8", "--epochs", "1", "--views", "1", "--holdout", "0.4", "--json", "--border", "0",
+            "--config", str(REPO / "config" / "pws.yaml"), "--n0", "8", "--n", "16", "--anchors", "2", *extra]
+
+
+def test_benchmark_script_runs_on_a_tiny_model(tmp_path, capsys, monkeypatch):
+    """pws_ros.bench.finetune_bench end to end on a synthetic TUM-format sequence and a tiny model
+    (the EfficientNet-Lite0 run itself is too long for the test machine): agreement, then per certified
+    frame and axis the tuned model's radius next to the ceiling of pws_ros.replay.ceiling; --resume
+    reuses what bench.json holds."""
+    from pws_ros.bench import finetune_bench as fb
+    from pws_ros.bagio.reader import BagReader
+
+    from pws_ros.bench.rgbd_sequence import convert
+
+    work = tmp_path / "work"
+    args = _tiny_bench(tmp_path, ["--eval", str(tmp_path / "one"), "--certify-heldout", "1"])
+    assert convert(tmp_path / "seq", tmp_path / "one", frames=1) == 1      # another recording, one frame
+    calls = []
+    real = fb.certify_recording
+    monkeypatch.setattr(fb, "certify_recording", lambda bag, *a, **k: calls.append(Path(bag)) or real(bag, *a, **k))
+    rc = fb.main(args)
     out, err = capsys.readouterr()
     assert rc == 0, err
     rows = json.loads(out)
     entry = rows["sigmas"]["0.5"]
     assert entry["heldout"]["after"]["frames"] == 2 and entry["frames"][0]["trained_on"] == 3
     (rec,) = entry["recordings"].values()
-    assert rec["original"]["frames"] == rec["tuned"]["frames"] == 5
-    assert (tmp_path / "work" / "bench.json").is_file() and (tmp_path / "work" / "tuned_sigma0.50.pt").is_file()
+    assert rec["original"]["frames"] == rec["tuned"]["frames"] == 1
+    assert (work / "bench.json").is_file() and (work / "tuned_sigma0.50.pt").is_file()
+    # certification: one held-out frame (of the two, spread evenly: the second) and the frame of --eval, per axis
+    cert = entry["certified"]
+    assert set(cert) == {"held-out", str(tmp_path / "one")}
+    report = json.loads(Path(entry["report"]).read_text())
+    held_stamps = [f["stamp_ns"] for f in report["per_frame"]]
+    assert [r["stamp_ns"] for r in cert["held-out"]] == [held_stamps[1]] * 2       # tz and ry of that frame, nothing else
+    with BagReader(work / "heldout_sigma0.50") as reader:                            # the bag certified holds only that frame
+        assert {m.log_time_ns for m in reader.messages()} == {held_stamps[1]}
+    assert len(cert[str(tmp_path / "one")]) == 2
+    for r in cert["held-out"] + cert[str(tmp_path / "one")]:
+        assert r["axis"] in ("tz", "ry") and r["ceiling"] > 0 and r["requested"] > 0
+        assert r["model"] is not None and r["model"] >= 0
+        assert r["ratio"] == pytest.approx(r["model"] / r["ceiling"])
+    med = entry["certified_medians"]
+    assert set(med) == {"tz", "ry"} and med["tz"]["frames"] == 2
+    assert med["tz"]["ratio_median"] == pytest.approx(float(np.median(
+        [r["ratio"] for rs in cert.values() for r in rs if r["axis"] == "tz"])))
+    text = fb.table(rows)
+    assert "ceiling" in text and "median radius / ceiling" in text and "held-out" in text
+    assert len(calls) == 2
+    # --resume: nothing is tuned, evaluated or certified again; the same rows come back
+    monkeypatch.setattr(fb, "evaluate_recording", lambda *a, **k: pytest.fail("evaluated again"))
+    import pws_ros.finetune as ft
+    monkeypatch.setattr(ft, "finetune", lambda *a, **k: pytest.fail("tuned again"))
+    rc = fb.main(args + ["--resume"])
+    again = json.loads(capsys.readouterr().out)
+    assert rc == 0 and len(calls) == 2
+    assert again["sigmas"]["0.5"]["certified"] == cert and again["sigmas"]["0.5"]["heldout"] == entry["heldout"]
+
+
+def test_benchmark_resume_retunes_when_the_settings_differ(tmp_path, capsys):
+    """A tuned model of other settings (here 2 epochs instead of 1) is not reused by --resume."""
+    from pws_ros.bench import finetune_bench as fb
+
+    assert fb.main(_tiny_bench(tmp_path, ["--no-certify"])) == 0
+    first = json.loads(capsys.readouterr().out)["sigmas"]["0.5"]
+    assert first["certified"] == {}
+    assert fb.main(_tiny_bench(tmp_path, ["--no-certify", "--resume", "--epochs", "2"])) == 0
+    second = json.loads(capsys.readouterr().out)["sigmas"]["0.5"]
+    from pws_ros.core.model import load_model
+    assert load_model(tmp_path / "work" / "tuned_sigma0.50.pt").meta["finetune"]["epochs"] == 2
+    assert second["heldout"]["after"]["frames"] == 2
+
+
+def test_pick_evenly():
+    from pws_ros.bench.finetune_bench import pick_evenly
+
+    assert pick_evenly(list(range(16)), 3) == [0, 8, 15]     # round(7.5) = 8 (banker's rounding)
+    assert pick_evenly([1, 2], 5) == [1, 2] and pick_evenly([1, 2, 3], 1) == [2] and pick_evenly([1], 0) == []
