@@ -73,3 +73,22 @@ def test_cli_json_and_bad_input():
     assert p.returncode == 2 and "needs the classifier's input size" in p.stderr
     p = subprocess.run(cmd + ["--size", "16x"], capture_output=True, text=True, timeout=60)
     assert p.returncode == 2 and "expected HxW" in p.stderr
+
+
+def test_cli_several_recordings_one_table(tmp_path):
+    other = tmp_path / "other_recording"
+    other.symlink_to(DEMO, target_is_directory=True)
+    cmd = [sys.executable, "-m", "pws_ros.cli", "ceiling", str(DEMO), str(other), "--max-frames", "1", "--axes", "tz",
+           "--radius", "tz=2mm", "--n0", "8", "--n", "32", "--anchors", "4", "--quiet", "--no-model", "--size", "90x160"]
+    p = subprocess.run(cmd + ["--json"], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    rows = json.loads(p.stdout)["rows"]
+    assert [r["recording"] for r in rows] == [str(DEMO), str(other)]
+    assert rows[0]["ceiling"] == rows[1]["ceiling"] > 0    # the same frame, seeded: the same ceiling
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    table = p.stdout.splitlines()
+    assert table[1].startswith("recording") and table[2].startswith(str(DEMO)) and table[3].startswith(str(other))
+    assert "tz: median ceiling" in p.stdout and p.stdout.count("median ceiling") == 1   # one median over both
+    p = subprocess.run(cmd[:5] + [str(tmp_path / "missing")] + cmd[6:], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2 and "missing" in p.stderr

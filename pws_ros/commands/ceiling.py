@@ -10,7 +10,7 @@ from ..core.errors import PwsError, require
 from .common import image_size
 
 DESCRIPTION = """\
-For each frame of a recording and each axis: the certificate CEILING, the radius that a classifier
+For each frame of a recording (or of several) and each axis: the certificate CEILING, the radius that a classifier
 that never changes its answer gets (every noise sample votes for one class, so every anchor has the
 largest p_A bound the sample sizes allow), next to the radius your model gets, as a share of the
 requested radius, with the time per axis.
@@ -28,13 +28,15 @@ EPILOG = """\
 examples:
   pws ceiling ../shared/data/kinect_organized_cloud --model models/my_net.pt --sigma 0.25
   pws ceiling my_recording --size 90x160 --max-frames 5 --no-model      # the ceiling alone, 160x90 input
-  pws ceiling bags/demo --max-frames 2 --json"""
+  pws ceiling bags/demo --max-frames 2 --json
+  pws ceiling rec_a rec_b rec_c --size 90x160 --no-model   # one table, medians over the three"""
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("ceiling", help="what a recording allows: the ceiling (a never-changing classifier) next to your model",
                               description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("bag", help="rosbag2 bag directory, or a bare .mcap / .db3 file")
+    p.add_argument("bags", nargs="+", metavar="bag",
+                   help="rosbag2 bag directory, or a bare .mcap / .db3 file; several: one table, the medians over all")
     p.add_argument("--model", default=None, help="your TorchScript classifier (default: config model_path)")
     p.add_argument("--no-model", action="store_true", help="the ceiling alone (needs --size, or a model that declares its input)")
     p.add_argument("--size", type=image_size, default=None, metavar="HxW",
@@ -72,9 +74,14 @@ def run(args: argparse.Namespace) -> int:
         model = None
         if not args.no_model:
             model = load_model(resolve_path(cfg.model_path, "model file"), device=cfg.device)
-        opts = ReplayOptions(bag=Path(args.bag), config=cfg, write_output=False, topics=input_topics(args),
-                             max_frames=args.max_frames, quiet=args.quiet, progress=False if args.quiet else None)
-        rows, _top, _got = ceiling(opts, model, input_size=args.size)
+        rows = []
+        for bag in args.bags:
+            opts = ReplayOptions(bag=Path(bag), config=cfg, write_output=False, topics=input_topics(args),
+                                 max_frames=args.max_frames, quiet=args.quiet, progress=False if args.quiet else None)
+            try:
+                rows += ceiling(opts, model, input_size=args.size)[0]
+            except PwsError as exc:
+                raise PwsError(f"{bag}: {exc}") from exc
     except PwsError as exc:
         print(f"pws ceiling: error: {exc}", file=sys.stderr)
         return 2
@@ -84,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
                           "num_anchors": cfg.num_anchors, "alpha": cfg.alpha}, indent=2))
     else:
         who = "ceiling alone" if model is None else f"model {cfg.model_path}"
-        print(f"{args.bag}: {who}; sigma {cfg.sigma:g}, n0 {cfg.n0}, n {cfg.n}, {cfg.num_anchors} anchors, alpha {cfg.alpha:g}; "
+        print(f"{', '.join(args.bags)}: {who}; sigma {cfg.sigma:g}, n0 {cfg.n0}, n {cfg.n}, {cfg.num_anchors} anchors, alpha {cfg.alpha:g}; "
               "radius as a share of the requested one, seconds per axis")
         print(format_rows(rows))
         for line in tips:

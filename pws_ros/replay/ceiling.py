@@ -59,6 +59,7 @@ class CeilingRow:
     model_status: str = ""
     model_class: str = ""
     model_p_a: float = math.nan
+    recording: str = ""
 
     def share(self, value: float) -> float:
         return value / self.requested if self.requested > 0 else math.nan
@@ -104,6 +105,8 @@ def ceiling(opts: ReplayOptions, model: LoadedModel | None, *, input_size: tuple
             row.model, row.model_s, row.model_status = float(m.radius), float(m.timings.get("total", math.nan)), m.status
             row.model_class, row.model_p_a = m.class_name, float(m.min_p_a_lower)
         rows.append(row)
+    for row in rows:
+        row.recording = str(opts.bag)
     return rows, top, got
 
 
@@ -132,13 +135,17 @@ def advice(rows: list[CeilingRow]) -> list[str]:
 
 
 def format_rows(rows: list[CeilingRow]) -> str:
-    head = f"{'frame':>5} {'axis':>4} {'requested':>11} {'ceiling':>18} {'model':>18}  {'class, p_A':<24}"
+    """The rows as a table; a first column names the recording when they come from several."""
+    names = [r.recording for r in rows]
+    width = max(len(n) for n in names) if len(set(names)) > 1 else 0
+    rec = (lambda n: f"{n:<{width}} ") if width else (lambda n: "")
+    head = rec("recording") + f"{'frame':>5} {'axis':>4} {'requested':>11} {'ceiling':>18} {'model':>18}  {'class, p_A':<24}"
     lines = [head]
     for r in rows:
         ceil = f"{r.share(r.ceiling):5.0%} {r.ceiling_s:5.1f} s"
         mod = f"{r.share(r.model):5.0%} {r.model_s:5.1f} s" if math.isfinite(r.model) else "-"
         cls = f"{r.model_class}, {r.model_p_a:.3f}" if r.model_status else ""
-        lines.append(f"{r.frame:>5} {r.axis:>4} {r.requested:>9.4g} {r.unit:<1} {ceil:>18} {mod:>18}  {cls:<24}")
+        lines.append(rec(r.recording) + f"{r.frame:>5} {r.axis:>4} {r.requested:>9.4g} {r.unit:<1} {ceil:>18} {mod:>18}  {cls:<24}")
     return "\n".join(lines)
 
 
