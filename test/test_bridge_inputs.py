@@ -181,3 +181,45 @@ def test_unmatched_inputs_are_counted_and_bounded():
         asm.on_depth(depth_msg(i))
     assert asm.dropped == 3
     assert asm.on_color(color_msg(4)) is not None and asm.dropped == 4  # depth 3 can never match now
+
+
+def test_max_depth_makes_far_depth_a_hole_in_depth_images_and_clouds():
+    """max_depth_m: a saturated uint16 depth (65535 mm) or any depth beyond the limit is a hole like 0: filled
+    from the farther valid neighbour in its row (depth_fill: row), dropped with depth_fill: off; the same
+    for an organized PointCloud2's z. 0 (the default) keeps it as a measured far surface."""
+    mm = np.full((6, 8), 1500, np.uint16)
+    mm[:, 5] = 2500
+    mm[2, 2:4] = 65535                       # saturated: two pixels between 1.5 m neighbours
+    mm[4, 6] = 65535                         # between 2.5 m (left, column 5) and 1.5 m (right, column 7)
+    depth = msgbuild.image_from_numpy(msgbuild.make_header(T, 5 * MS, "cam"), mm, T)
+    raw_msgs = {"depth": depth, "color": color_msg(5 * MS), "info": info_msg()}
+    from pws_ros.bridge.inputs import RawFrame
+
+    raw = RawFrame("rgbd", 5 * MS, depth.header, raw_msgs)
+    keep = convert(raw, config_from_params({"input_mode": "rgbd"}))
+    assert len(keep.cloud) == 48 and keep.cloud.filled == 0 and np.isclose(keep.cloud.points[:, 2].max(), 65.535)
+    cut = convert(raw, config_from_params({"input_mode": "rgbd", "max_depth_m": 10.0}))
+    z = cut.cloud.points[:, 2].reshape(6, 8)            # every pixel is a point, row-major
+    assert cut.cloud.filled == 3
+    # brute force: each hole takes the larger of the nearest valid depths left and right in its row
+    want = mm.astype(np.float64) / 1000.0
+    for r, c in ((2, 2), (2, 3), (4, 6)):
+        left = [d for j, d in enumerate(want[r]) if j < c and mm[r, j] != 65535]
+        right = [d for j, d in enumerate(want[r]) if j > c and mm[r, j] != 65535]
+        assert np.isclose(z[r, c], max(left[-1], right[0]), atol=1e-6)
+    off = convert(raw, config_from_params({"input_mode": "rgbd", "max_depth_m": 10.0, "depth_fill": "off"}))
+    assert len(off.cloud) == 45 and off.cloud.points[:, 2].max() < 10.0
+    # an organized cloud: the z beyond the limit is invalid, then filled through its pixel centre
+    rows, cols = np.mgrid[0:6, 0:8]
+    zc = mm.astype(np.float64) / 1000.0
+    pts = np.stack([(cols - CAM.cx) * zc / CAM.fx, (rows - CAM.cy) * zc / CAM.fy, zc], -1).reshape(-1, 3)
+    pc = msgbuild.cloud_to_pointcloud2(msgbuild.make_header(T, 6 * MS, "cam"), Cloud(pts, np.full((48, 3), 0.25)), T,
+                                       organized_shape=(6, 8))
+    raw_pc = RawFrame("pointcloud2", 6 * MS, pc.header, {"points": pc, "info": info_msg()})
+    far = convert(raw_pc, config_from_params({"input_mode": "pointcloud2"}))
+    near = convert(raw_pc, config_from_params({"input_mode": "pointcloud2", "max_depth_m": 10.0}))
+    assert far.cloud.filled == 0 and np.isclose(far.cloud.points[:, 2].max(), 65.535)
+    assert near.cloud.filled == 3 and len(near.cloud) == 48
+    np.testing.assert_allclose(np.sort(near.cloud.points[:, 2]), np.sort(z.reshape(-1)), atol=1e-6)
+    with pytest.raises(PwsError, match="max_depth_m"):
+        config_from_params({"max_depth_m": -1.0})

@@ -172,6 +172,21 @@ def cloud_from_pointcloud2(msg: Any) -> CloudConversion:
     return CloudConversion(cloud, arr.shape if arr.organized else None, arr.rgb is not None, arr)
 
 
+def within_depth(conv: CloudConversion, max_depth: float) -> CloudConversion:
+    """``conv`` with its points farther than ``max_depth`` (their z, in the optical frame) made invalid, as a
+    driver's no return (``max_depth_m``; 0: unchanged)."""
+    if not max_depth > 0:
+        return conv
+    arr = conv.arrays
+    with np.errstate(invalid="ignore"):
+        valid = arr.valid & ~(arr.xyz[:, 2] > max_depth)
+    if valid.sum() == arr.valid.sum():
+        return conv
+    colors = arr.rgb[valid] if arr.rgb is not None else np.full((int(valid.sum()), 3), 0.5, dtype=np.float32)
+    arrays = replace(arr, valid=valid)
+    return CloudConversion(Cloud(arr.xyz[valid], colors), conv.organized_shape, conv.has_color, arrays)
+
+
 def intrinsics_from_organized_cloud(arrays: PointCloudArrays, *, frame_id: str | None = None,
                                     max_rms_px: float = 0.75, min_points: int = 16) -> CameraIntrinsics:
     """Pinhole intrinsics of an organized cloud's grid by least squares.
@@ -228,16 +243,18 @@ def fill_organized(arrays: PointCloudArrays, intr: CameraIntrinsics, *, min_vali
 
 
 def cloud_and_intrinsics_from_pointcloud2(msg: Any, info_msg: Any | None = None, fallback: CameraIntrinsics | None = None, *,
-                                          depth_fill: str = "off", min_valid: float = 0.0) -> tuple[Cloud, CameraIntrinsics, bool]:
+                                          depth_fill: str = "off", min_valid: float = 0.0,
+                                          max_depth: float = 0.0) -> tuple[Cloud, CameraIntrinsics, bool]:
     """The cloud of a PointCloud2 and the camera to render it with: ``(cloud, intrinsics, has_color)``.
 
     Intrinsics come from ``info_msg`` (an organized cloud must then have its size), else from the
     organized grid (least squares), else ``fallback``; an unorganized cloud without CameraInfo or
     fallback is refused. An organized cloud with ``depth_fill="row"`` has its invalid points filled
-    (:func:`fill_organized`); ``min_valid``: the least share of valid points of an organized cloud.
+    (:func:`fill_organized`); ``min_valid``: the least share of valid points of an organized cloud;
+    ``max_depth`` (> 0): points with a larger z are invalid (:func:`within_depth`).
     """
     require(depth_fill in DEPTH_FILLS, f"unknown depth_fill {depth_fill!r}: expected one of {', '.join(DEPTH_FILLS)}")
-    conv = cloud_from_pointcloud2(msg)
+    conv = within_depth(cloud_from_pointcloud2(msg), max_depth)
     cloud, shape = conv
     frame = frame_id_of(msg)
     if info_msg is not None:
@@ -261,4 +278,4 @@ def cloud_and_intrinsics_from_pointcloud2(msg: Any, info_msg: Any | None = None,
 
 
 __all__ = ["CloudConversion", "POINTFIELD_DTYPES", "POINTFIELD_NAMES", "PointCloudArrays", "cloud_and_intrinsics_from_pointcloud2",
-           "cloud_from_pointcloud2", "fill_organized", "intrinsics_from_organized_cloud", "pointcloud2_to_arrays"]
+           "cloud_from_pointcloud2", "fill_organized", "intrinsics_from_organized_cloud", "pointcloud2_to_arrays", "within_depth"]

@@ -235,12 +235,14 @@ def convert(frame: RawFrame, config: PwsConfig, fallback: CameraIntrinsics | Non
     m = frame.messages
     if frame.source == "pointcloud2":
         cloud, intr, has_color = cloudconv.cloud_and_intrinsics_from_pointcloud2(
-            m["points"], m.get("info"), fallback, depth_fill=config.depth_fill, min_valid=config.min_valid_depth)
+            m["points"], m.get("info"), fallback, depth_fill=config.depth_fill, min_valid=config.min_valid_depth,
+            max_depth=config.max_depth_m)
     else:
         require(frame.source == "rgbd", f"unknown input source {frame.source!r}")
         cloud, intr = msgconv.cloud_from_rgbd(m["depth"], m["color"], m["info"], m.get("depth_info"),
                                               require_same_frame=config.require_same_frame, extrinsic=m.get("extrinsic"),
-                                              depth_fill=config.depth_fill, min_valid=config.min_valid_depth)
+                                              depth_fill=config.depth_fill, min_valid=config.min_valid_depth,
+                                              max_depth=config.max_depth_m)
         has_color = True
         # the cloud as a PointCloud2 carries it (float32 x y z): the pipeline and the four-process chain
         # (where the cloud crosses a topic) then certify exactly the same points

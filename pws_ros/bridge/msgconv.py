@@ -153,8 +153,9 @@ def color_to_numpy(msg: Any) -> np.ndarray:
     return image_to_numpy(msg)
 
 
-def depth_to_meters(msg: Any) -> np.ndarray:
-    """A depth ``Image`` as ``(H, W)`` float64 metres; invalid pixels (0, NaN, inf, < 0) are NaN.
+def depth_to_meters(msg: Any, max_depth: float = 0.0) -> np.ndarray:
+    """A depth ``Image`` as ``(H, W)`` float64 metres; invalid pixels (0, NaN, inf, < 0, and farther than
+    ``max_depth`` when it is > 0: ``max_depth_m``) are NaN.
 
     ``16UC1``/``mono16`` are millimetres, ``32FC1`` metres (REP 118).
     """
@@ -168,6 +169,8 @@ def depth_to_meters(msg: Any) -> np.ndarray:
         depth = raw.astype(np.float64)
     with np.errstate(invalid="ignore"):
         invalid = ~np.isfinite(depth) | (depth <= 0)
+        if max_depth > 0:
+            invalid |= depth > max_depth
     depth[invalid] = np.nan
     return depth
 
@@ -287,7 +290,7 @@ def registration_problem(depth_msg: Any, color_msg: Any, info_msg: Any, depth_in
 
 def cloud_from_rgbd(depth_msg: Any, color_msg: Any, info_msg: Any, depth_info_msg: Any | None = None,
                     *, require_same_frame: bool = True, extrinsic: Extrinsic | None = None, depth_fill: str = "off",
-                    min_valid: float = 0.0) -> tuple[Cloud, CameraIntrinsics]:
+                    min_valid: float = 0.0, max_depth: float = 0.0) -> tuple[Cloud, CameraIntrinsics]:
     """The one-frame cloud of a depth + colour pair and the colour camera's intrinsics.
 
     Depth and colour must be *registered* (the depth resampled into the colour camera): same size
@@ -297,11 +300,12 @@ def cloud_from_rgbd(depth_msg: Any, color_msg: Any, info_msg: Any, depth_info_ms
     registered here when ``extrinsic`` (depth -> colour optical frame) and ``depth_info_msg`` are
     given (:func:`~pws_ros.core.registration.register_depth`: nearest depth wins, holes stay holes);
     otherwise PwsError: such data would paint points with the wrong colours. ``depth_fill`` and
-    ``min_valid``: see :func:`~pws_ros.core.cloud.cloud_from_rgbd` (applied in the colour camera).
+    ``min_valid``: see :func:`~pws_ros.core.cloud.cloud_from_rgbd` (applied in the colour camera);
+    ``max_depth`` (> 0): depth beyond it is invalid (:func:`depth_to_meters`, in the depth camera).
     """
     problem = registration_problem(depth_msg, color_msg, info_msg, depth_info_msg, require_same_frame=require_same_frame)
     require(not problem or extrinsic is not None, f"{problem}; {ALIGNED_DEPTH_HINT}")
-    depth = depth_to_meters(depth_msg)
+    depth = depth_to_meters(depth_msg, max_depth)
     rgb = color_to_numpy(color_msg)
     ch, cw = rgb.shape[:2]
     intr = intrinsics_from_camera_info(info_msg)

@@ -170,6 +170,10 @@ PARAMS: tuple[ParamSpec, ...] = (
               "no black holes and a filled point never occludes a measured one; the certificate is then about the cloud "
               "with filled depth and counts the filled points; off = only measured pixels become points",
               choices=("row", "off"), nodes=_IN),
+    ParamSpec("max_depth_m", 0.0, "depth farther than this is invalid, as a driver's no return (e.g. a saturated 65535 of a "
+              "uint16 image, or a sensor's range): filled by depth_fill like any invalid pixel and not counted as valid by "
+              "min_valid_depth; applied to the depth image (before registration) or to the organized cloud's z; 0 = no limit",
+              range=(0.0, 1e6), nodes=_IN, unit="m"),
     ParamSpec("min_valid_depth", 0.1, "least share of an input frame's pixels with a valid depth (organized clouds, depth "
               "images); below it the frame is an ERROR (too little is measured to describe a scene)", range=(0.0, 1.0), nodes=_IN),
     ParamSpec("require_same_frame", True, "refuse depth and colour with different non-empty frame ids (not registered)", nodes=_IN),
