@@ -315,6 +315,12 @@ def test_benchmark_script_runs_on_a_tiny_model(tmp_path, capsys, monkeypatch):
     again = json.loads(capsys.readouterr().out)
     assert rc == 0 and len(calls) == 2
     assert again["sigmas"]["0.5"]["certified"] == cert and again["sigmas"]["0.5"]["heldout"] == entry["heldout"]
+    # --resume with another --certify-heldout certifies the held-out frames again (both now), the rest is kept
+    rc = fb.main(_tiny_bench(tmp_path, ["--eval", str(tmp_path / "one"), "--certify-heldout", "2", "--resume"]))
+    third = json.loads(capsys.readouterr().out)["sigmas"]["0.5"]["certified"]
+    assert rc == 0 and calls[2:] == [work / "heldout_sigma0.50"]
+    assert sorted({r["stamp_ns"] for r in third["held-out"]}) == sorted(held_stamps)
+    assert third[str(tmp_path / "one")] == cert[str(tmp_path / "one")]
 
 
 def test_benchmark_resume_retunes_when_the_settings_differ(tmp_path, capsys):

@@ -268,15 +268,22 @@ def run_bench(src: Path, work: Path, *, model: str = "lite0", sigmas: tuple[floa
                 save()
         if not certify:
             continue
-        todo: list[tuple[str, Path]] = []
+        todo: list[tuple[str, Path | None]] = []
+        chosen: list[int] = []
         if certify_heldout > 0:
             rep = json.loads(Path(entry["report"]).read_text())
             chosen = pick_evenly([int(f["stamp_ns"]) for f in rep["per_frame"]], certify_heldout)
-            todo.append(("held-out", frames_bag(bag, chosen, work / f"heldout_sigma{sigma:.2f}", )))
+            if sorted({r["stamp_ns"] for r in certified.get("held-out", [])}) != sorted(chosen):
+                certified.pop("held-out", None)     # another --certify-heldout than the stored rows': certify again
+            todo.append(("held-out", None))
+        else:
+            certified.pop("held-out", None)
         todo += [(str(eb), Path(eb)) for eb in eval_bags]
         for name, b in todo:
             if name in certified:
                 continue
+            if b is None:
+                b = frames_bag(bag, chosen, work / f"heldout_sigma{sigma:.2f}")
             certified[name] = certify_recording(b, out, ccfg, sigma, batch_size=batch_size, device=device, log=log)
             entry["certified_medians"] = certified_medians(entry)
             save()
