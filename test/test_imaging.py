@@ -477,6 +477,28 @@ def test_refine_plan_stops_where_the_anchor_budget_cannot_reach():
     assert got >= {-0.375, -0.125, 0.125, 0.375} and -0.625 not in got and 0.625 not in got
 
 
+def test_refine_plan_keeps_the_covered_run():
+    alphas = make_grid(1.0, 0.25)  # 9 frames, centre index 4
+    plan = Plan("pws_of", "tx", 1.0, 0.25, 9, alphas)
+    frames = np.arange(9, dtype=np.float64).reshape(9, 1, 1, 1)  # every segment differs by 1.0
+    out = refine_plan(plan, frames, 0.5, 1000, keep=(-0.5, 0.25))
+    # brute force: each segment not inside [-0.5, 0.25] gets its midpoint, the others none
+    want = set(alphas)
+    for a, b in zip(alphas[:-1], alphas[1:]):
+        if not (a >= -0.5 and b <= 0.25):
+            want.add((a + b) / 2)
+    assert set(np.round(out.alphas, 9)) == set(np.round(sorted(want), 9))
+
+
+def test_covered_run_is_the_run_around_the_centre():
+    """The run a blocked placement covers (kept unrefined by the extra round of _certify_anchored)."""
+    from pws_ros.core.certify import _covered_run
+
+    assert _covered_run(np.array([False, True, True, True, False, True]), np.arange(7.0) - 2, 2) == (-1.0, 2.0)
+    assert _covered_run(np.array([True, False, True, True]), np.arange(5.0) - 2, 2) == (0.0, 2.0)
+    assert _covered_run(np.array([False, False]), np.array([-1.0, 0.0, 1.0]), 1) == (0.0, 0.0)
+
+
 def test_memory_ceiling_keeps_the_refined_grid_small_instead_of_failing(monkeypatch):
     import pws_ros.core.certify as certify_mod
     from conftest import MeanThresholdNet

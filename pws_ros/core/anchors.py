@@ -157,13 +157,14 @@ def _with_rows(anchors: list[int], row: Callable[[int], np.ndarray], rows_out: d
 
 
 def refine_plan(plan: Plan, frames: np.ndarray, max_step: float, max_partitions: int,
-                reach: float | None = None) -> Plan:
+                reach: float | None = None, keep: tuple[float, float] | None = None) -> Plan:
     """Subdivide every segment whose end frames differ (l2) by more than ``max_step`` into equal parts so
     that consecutive frames differ by about ``max_step`` at most (fine enough to place anchors within a
     target radius), keeping at most ``max_partitions`` grid points (fewer parts everywhere if needed).
     With ``reach`` (a path length), only segments within that rendered path length of ``alpha = 0`` on
     their side are refined: the anchor budget cannot cover farther, so finer frames there buy nothing.
-    The grid stays a grid of the same interval that contains 0; only tightness depends on it."""
+    With ``keep = (lo, hi)``, segments inside ``[lo, hi]`` are left as they are (a run the anchors
+    already cover). The grid stays a grid of the same interval that contains 0; only tightness depends on it."""
     f = np.asarray(frames, dtype=np.float64)
     d = np.sqrt(((f[1:] - f[:-1]) ** 2).reshape(len(f) - 1, -1).sum(axis=1))
     parts = np.maximum(1, np.ceil(d / max(max_step, 1e-12))).astype(np.int64)
@@ -173,6 +174,9 @@ def refine_plan(plan: Plan, frames: np.ndarray, max_step: float, max_partitions:
         left = np.cumsum(d[:centre][::-1])[::-1]
         far = np.concatenate([left, right]) - d        # path to each segment's near end
         parts = np.where(far <= reach, parts, 1)
+    if keep is not None:
+        a = plan.alphas
+        parts = np.where((a[:-1] >= keep[0]) & (a[1:] <= keep[1]), 1, parts)
     budget = max(len(d), int(max_partitions) - 1)
     if parts.sum() > budget:
         scale = (budget - len(d)) / max(1, int((parts - 1).sum()))

@@ -358,8 +358,9 @@ class _RendererGeometry:
     def frames(self, plan: Plan) -> np.ndarray:
         return self.renderer.render_batch(plan.alphas).cpu().numpy()
 
-    def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int) -> tuple[Plan, np.ndarray]:
-        return refine_for_target(self.renderer, plan, frames, target, max_anchors, self.config)
+    def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
+               keep: tuple[float, float] | None = None) -> tuple[Plan, np.ndarray]:
+        return refine_for_target(self.renderer, plan, frames, target, max_anchors, self.config, keep=keep)
 
     def bounds(self, plan: Plan):
         # one sweep over the plan's range bounds its grid here, the new segments of a refinement of it (the
@@ -388,7 +389,8 @@ class _FixedGeometry:
     def frames(self, plan: Plan) -> np.ndarray:
         return self._frames
 
-    def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int) -> tuple[Plan, np.ndarray]:
+    def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
+               keep: tuple[float, float] | None = None) -> tuple[Plan, np.ndarray]:
         return plan, frames
 
     def bounds(self, plan: Plan):
@@ -404,7 +406,7 @@ def grid_cap(imaging: Imaging, config: CertifyConfig) -> int:
 
 
 def refine_for_target(renderer: SurfelRenderer, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
-                      config: CertifyConfig, reserve: int = 0) -> tuple[Plan, np.ndarray]:
+                      config: CertifyConfig, reserve: int = 0, keep: tuple[float, float] | None = None) -> tuple[Plan, np.ndarray]:
     """The plan refined where consecutive frames differ by more than ``target / REFINE_FRACTION``
     (:func:`.anchors.refine_plan`), and its frames (only the new poses rendered). Anchors cover about 2
     target radii of rendered path each: no refinement farther than the budget reaches; the refined grid
@@ -412,7 +414,7 @@ def refine_for_target(renderer: SurfelRenderer, plan: Plan, frames: np.ndarray, 
     :func:`_certify_anchored` asks for more where the anchors fall short."""
     coarse = plan
     plan = refine_plan(plan, frames, target / REFINE_FRACTION, max(len(frames), grid_cap(renderer.imaging, config) - int(reserve)),
-                       reach=(max_anchors + 1) * target)
+                       reach=(max_anchors + 1) * target, keep=keep)
     if len(plan.alphas) != len(frames):  # render only the new poses
         old = np.searchsorted(plan.alphas, coarse.alphas)
         new = np.setdiff1d(np.arange(len(plan.alphas)), old)
@@ -421,6 +423,17 @@ def refine_for_target(renderer: SurfelRenderer, plan: Plan, frames: np.ndarray, 
         full[new] = renderer.render_batch(plan.alphas[new]).cpu().numpy()
         frames = full
     return plan, frames
+
+
+def _covered_run(covered: np.ndarray, alphas: np.ndarray, centre: int) -> tuple[float, float]:
+    """``[alpha_lo, alpha_hi]`` of the run of covered segments around the grid point ``centre``."""
+    hi = centre
+    while hi < len(covered) and covered[hi]:
+        hi += 1
+    lo = centre - 1
+    while lo >= 0 and covered[lo]:
+        lo -= 1
+    return float(alphas[lo + 1]), float(alphas[hi])
 
 
 def _predicted_reach(rule: AdaptiveAnchorsRule, anchor_rows: dict[int, np.ndarray], est_idx: np.ndarray, plan: Plan,
@@ -566,8 +579,14 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
             break
         t0 = time.perf_counter()
         finer, finer_frames = plan, frames
+        keep = None
+        if len(est_idx) < max_anchors:
+            # the placement stopped at a segment no grid frame nearby covers, with anchors to spare: the run it
+            # covers stays as it is and only the grid beyond it is refined (its anchors keep covering it)
+            D2 = np.stack([anchor_rows[int(a)] for a in est_idx])
+            keep = _covered_run(rule.radius(np.full(len(est_idx), target), D2, plan.alphas, centre)[1], plan.alphas, centre)
         for _ in range(REFINE_ROUNDS - 1):
-            finer, finer_frames = geometry.refine(finer, finer_frames, target, max_anchors)
+            finer, finer_frames = geometry.refine(finer, finer_frames, target, max_anchors, keep=keep)
         t_render += time.perf_counter() - t0
         if len(finer.alphas) == len(plan.alphas):
             break
