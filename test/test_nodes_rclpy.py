@@ -262,7 +262,8 @@ def test_cloud_listener_registers_depth_with_latched_tf_static(ros):
     tf_pub.publish(T.TFMessage(transforms=links))  # before the listener exists: latched
     params = [Parameter("input_mode", value="rgbd"), Parameter("depth_topic", value="/cam/depth"),
               Parameter("color_topic", value="/cam/color"), Parameter("camera_info_topic", value="/cam/info"),
-              Parameter("depth_camera_info_topic", value="/cam/depth_info")]
+              Parameter("depth_camera_info_topic", value="/cam/depth_info"),
+              Parameter("depth_fill", value="off")]   # the registration's holes stay holes (row fill would close them)
     node = Node("cloud_listener", parameter_overrides=params)
     logic = CloudListenerNode(NodeContext(node, "cloud_listener"))
     clouds = []
