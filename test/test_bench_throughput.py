@@ -62,3 +62,30 @@ def test_budget_rows(setup):
     (row,) = rows
     assert row["axis"] == "tz" and row["none"]["share_s"] is None and row["budget"]["share_s"] > 0
     assert row["budget"]["radius"] == row["none"]["radius"]   # an ample budget keeps the configured sizes
+
+
+def test_live_mode_without_rclpy_says_so(monkeypatch, capsys):
+    """``--live`` needs ROS 2: without rclpy it exits 2 with the one-line reason (before reading the bag)."""
+    from pws_ros.nodes import _common
+
+    monkeypatch.setattr(_common, "rclpy_available", lambda: False)
+    assert TP.main(["--live", "--seconds", "1"]) == 2
+    assert "--live: rclpy (ROS 2 Jazzy) is not importable" in capsys.readouterr().err
+
+
+def test_live_certificate_values_leave_out_timings_and_worker(tmp_path):
+    """Two workers' certificates of one stamp compare equal on what they state, whatever their timings
+    and node (what ``--live`` compares across runs)."""
+    from pws_ros.bridge import msgbuild
+    from pws_ros.nodes.live import CERT_COMPARED, certificate_values
+
+    T = msgbuild.rosbags_types()
+    statuses = []
+    for node, ms in (("/pipeline_0", "12.5"), ("/pipeline_1", "99.0")):
+        values = [T.KeyValue(key=k, value="1") for k in msgbuild.DIAGNOSTIC_KEYS]
+        values = [T.KeyValue(key=kv.key, value=ms if kv.key in ("latency_ms", "compute_ms") else kv.value) for kv in values]
+        values.append(T.KeyValue(key="node", value=node))
+        statuses.append(T.DiagnosticArray(header=msgbuild.make_header(T, 5, "cam"), status=[
+            T.DiagnosticStatus(level=0, name="pws/tz", message="m", hardware_id="cam", values=values)]))
+    a, b = (certificate_values(s) for s in statuses)
+    assert a == b and set(a["tz"]) == set(CERT_COMPARED)

@@ -1,6 +1,7 @@
 """Throughput of the live scheme without ROS, and a time budget against none, side by side.
 
     python -m pws_ros.bench.throughput [bags/demo] [--workers 1,2] [--loops 2] [--budget 6] [--json]
+    python -m pws_ros.bench.throughput --live [--workers 1,2] [--seconds 90]     # ROS 2 sourced
 
 1. **Workers.** The recording's frames (looped ``--loops`` times, each loop's stamps shifted past the
    last, as ``ros2 bag play --loop`` with a new timeline) are certified by W worker processes at once,
@@ -15,6 +16,11 @@
    the time spent, the sizes (anchors, n, grid), the classifier calls and the radius.
 
 Also the machine: cores, load average before and after (timings on a shared machine vary).
+
+``--live`` measures the same on the real graph instead (:mod:`pws_ros.nodes.live`): ``pws.launch.py
+workers:=W`` for each W in turn, the recording looped at 10 Hz by an rclpy player (the same stamps every
+run; the online policy drops what the workers cannot take), certifications per minute over ``--seconds``
+once every worker certified a frame, and the certificates of the stamps two runs both certified compared.
 """
 from __future__ import annotations
 
@@ -142,7 +148,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--budget-frames", type=int, default=4, help="frames of the budget comparison (default 4)")
     p.add_argument("--config", default=None, help="parameter file (default: config/pws.yaml)")
     p.add_argument("--json", action="store_true", help="print the measurements as JSON")
+    p.add_argument("--live", action="store_true",
+                   help="instead: the live ROS 2 graph (rclpy; source ROS 2 Jazzy first): pws.launch.py workers:=W for each "
+                        "--workers count in turn on the recording looped at its 10 Hz, certifications counted for --seconds "
+                        "once every worker certified a frame; certificates compared per stamp across the runs")
+    p.add_argument("--seconds", type=float, default=90.0, help="--live: measuring window per worker count (default 90 s)")
     args = p.parse_args(argv)
+    if args.live:
+        return live_main(args)
 
     from ..bridge.workers import available_cores
     from ..replay.options import load_replay_config
@@ -190,6 +203,31 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows:
         frames_b.setdefault(r["stamp"], r["budget"]["frame_s"])
     print(f"budgeted frames: {', '.join(f'{v:.2f}' for v in frames_b.values())} s (budget {args.budget:g} s)")
+    return 0
+
+
+def live_main(args: argparse.Namespace) -> int:
+    """``--live``: :func:`pws_ros.nodes.live.live_throughput` (rclpy lives in the nodes package only)."""
+    from ..nodes._common import ROS_MISSING, rclpy_available
+
+    if not rclpy_available():
+        print(f"--live: {ROS_MISSING}", file=sys.stderr)
+        return 2
+    from ..bridge.workers import available_cores
+    from ..nodes.live import live_throughput
+
+    res = live_throughput([int(w) for w in args.workers.split(",")], args.seconds, Path(args.config) if args.config else None,
+                          Path(args.bag))
+    if args.json:
+        print(json.dumps({"cores": available_cores(), **res, "runs": [{k: v for k, v in r.items() if k != "certs"} for r in res["runs"]]},
+                         indent=2, default=str))
+        return 0
+    print(f"live: pws.launch.py workers:=W on {args.bag} looped at 10 Hz; {available_cores()} cores; config {res['config']}")
+    print(f"{'workers':>7}  {'window s':>8}  {'certified':>9}  {'frames/min':>10}  {'speed-up':>8}  {'common stamps':>13}  "
+          f"{'equal certs':>11}  {'published':>9}  load average (before 1/5/15, after 1/5/15)  per worker")
+    for r in res["runs"]:
+        print(f"{r['workers']:>7}  {r['window_s']:>8.1f}  {r['certified']:>9}  {r['frames_per_min']:>10.1f}  {r['speedup']:>7.2f}x  "
+              f"{r['common_stamps']:>13}  {r['equal_certificates']:>11}  {r['frames_published']:>9}  {r['loadavg']}  {r['per_worker']}")
     return 0
 
 
