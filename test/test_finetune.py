@@ -293,6 +293,7 @@ def test_benchmark_script_runs_on_a_tiny_model(tmp_path, capsys, monkeypatch):
     report = json.loads(Path(entry["report"]).read_text())
     held_stamps = [f["stamp_ns"] for f in report["per_frame"]]
     assert [r["stamp_ns"] for r in cert["held-out"]] == [held_stamps[1]] * 2       # tz and ry of that frame, nothing else
+    assert {r["teacher"] for r in cert["held-out"]} == {report["per_frame"][1]["teacher"]}
     with BagReader(work / "heldout_sigma0.50") as reader:                            # the bag certified holds only that frame
         assert {m.log_time_ns for m in reader.messages()} == {held_stamps[1]}
     assert len(cert[str(tmp_path / "one")]) == 2

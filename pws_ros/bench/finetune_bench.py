@@ -287,6 +287,10 @@ def run_bench(src: Path, work: Path, *, model: str = "lite0", sigmas: tuple[floa
             certified[name] = certify_recording(b, out, ccfg, sigma, batch_size=batch_size, device=device, log=log)
             entry["certified_medians"] = certified_medians(entry)
             save()
+        if chosen:   # the original model's clean answer next to the certified class of each held-out frame
+            teacher = {int(f["stamp_ns"]): f["teacher"] for f in rep["per_frame"]}
+            for r in certified.get("held-out", []):
+                r["teacher"] = teacher.get(int(r["stamp_ns"]))
         entry["certified_medians"] = certified_medians(entry)
         save()
     save()
@@ -315,16 +319,18 @@ def table(rows: dict[str, Any]) -> str:
         lines.append(f"certified radius of the tuned model vs the ceiling (a never-changing classifier), share of the requested "
                      f"radius; n0 {c.get('n0')}, n {c.get('n')}, {c.get('num_anchors')} anchors, alpha {c.get('alpha')}")
         lines.append(f"{'sigma':>6s}  {'frames':28s} {'stamp s':>10s} {'axis':>4s} {'requested':>10s} {'ceiling':>8s} {'tuned':>8s} "
-                     f"{'ratio':>6s}  {'class, p_A':28s} {'s (ceil+model)':>14s}")
+                     f"{'ratio':>6s}  {'tuned class, p_A lower bound (clean: original)':44s} {'s':>5s}")
         for s, e in cert:
             for name, rs in e["certified"].items():
                 for r in rs:
                     ratio = "-" if r.get("ratio") is None else f"{r['ratio']:.2f}"
                     cls = f"{r.get('model_class', '')}, {r['model_p_a']:.3f}" if r.get("model_p_a") is not None else "-"
+                    if r.get("teacher"):
+                        cls += f" (clean: {r['teacher']})"
                     secs = f"{(r.get('ceiling_s') or 0) + (r.get('model_s') or 0):.0f}"
                     lines.append(f"{s:>6s}  {Path(name).name[:28]:28s} {r['stamp_ns'] / 1e9:>10.3f} {r['axis']:>4s} "
                                  f"{r['requested']:>8.4g} {r['unit']:1s} {f(r.get('ceiling_share')):>8s} {f(r.get('model_share')):>8s} "
-                                 f"{ratio:>6s}  {cls[:28]:28s} {secs:>14s}")
+                                 f"{ratio:>6s}  {cls:44s} {secs:>5s}")
             for axis, m in e.get("certified_medians", {}).items():
                 med = "-" if m["ratio_median"] is None else f"{m['ratio_median']:.2f}"
                 lines.append(f"{'':6s}  {axis}: median radius / ceiling {med} over {m['frames']} frame(s); median share of the "
