@@ -167,6 +167,34 @@ def test_auto_mode_locks_onto_the_first_source():
     assert asm.ignored == 2 and asm.locked_source == "pointcloud2"
 
 
+def test_auto_mode_a_frame_that_fails_to_convert_releases_the_source():
+    """A malformed PointCloud2 first (it completes a frame, then fails in convert): the source is released
+    (the nodes report the failure), so the RGB-D camera's frames that follow are taken; once a frame
+    converts, its source is kept for good and the other is ignored again."""
+    cfg = config_from_params({"input_mode": "auto"})
+    asm = InputAssembler(cfg)
+    asm.on_info(info_msg())
+    bad = points_msg(1)
+    bad.point_step = 0
+    raw = asm.on_points(bad)
+    assert raw.source == "pointcloud2" and asm.locked_source == "pointcloud2"
+    with pytest.raises(PwsError):
+        convert(raw, cfg, asm.fallback)
+    asm.conversion_done(raw.source, False)
+    assert asm.locked_source is None
+    assert asm.on_depth(depth_msg(2)) is None
+    good = asm.on_color(color_msg(2))
+    assert good is not None and good.source == "rgbd" and asm.locked_source == "rgbd"
+    convert(good, cfg, asm.fallback)
+    asm.conversion_done(good.source, True)
+    assert asm.on_points(points_msg(3)) is None and asm.ignored == 1
+    asm.conversion_done("rgbd", False)            # a later bad RGB-D frame: the lock holds
+    assert asm.locked_source == "rgbd" and asm.on_points(points_msg(4)) is None
+    fixed = InputAssembler(config_from_params({"input_mode": "rgbd"}))
+    fixed.conversion_done("rgbd", False)           # a fixed mode is never released
+    assert fixed.locked_source == "rgbd"
+
+
 def test_min_period_skips_frames():
     asm = InputAssembler(config_from_params({"input_mode": "pointcloud2", "min_period_s": 0.5}))
     got = [asm.on_points(points_msg(t * 100 * MS)) is not None for t in range(12)]

@@ -355,3 +355,43 @@ def test_camera_info_with_nan_coefficients_is_refused_and_unknown_models_are_nam
     huge.width = 4_000_000_000
     with pytest.raises(PwsError, match="above 16384 px a side"):
         msgconv.intrinsics_from_camera_info(huge)
+
+
+def test_a_malformed_cloud_first_does_not_lock_out_the_rgbd_camera(model_path):
+    """``input_mode: auto`` uses the first source that completes a frame. A malformed PointCloud2 on the
+    (unused) points topic before the camera's first frame used to lock the node onto PointCloud2 for
+    good, every RGB-D frame then ignored in silence; now the failed frame is an ERROR certification
+    and the camera's frames are certified after it (pipeline, and cloud_listener in the chain)."""
+    from pws_ros.core.cloud import Cloud
+    from pws_ros.nodes.pipeline import PipelineNode
+
+    bad_stamp, good_stamp = T0, T0 + 100 * MS
+    pts = np.stack(np.meshgrid(np.linspace(-0.5, 0.5, 32), np.linspace(-0.4, 0.4, 24)), -1).reshape(-1, 2)
+    cloud = Cloud(np.column_stack([pts, np.full(len(pts), 2.0)]), np.full((len(pts), 3), 0.5))
+    bad = msgbuild.cloud_to_pointcloud2(msgbuild.make_header(T, bad_stamp, "cam"), cloud, T, organized_shape=(24, 32))
+    bad.point_step = 0                                   # malformed: no field fits
+    for mode in ("pipeline", "four"):
+        bus = Bus()
+        extra = {"input_mode": "auto", "points_topic": "/cam/points"}
+        if mode == "pipeline":
+            ctx = Context(bus, "pipeline", **params(model_path, **extra))
+            nodes, tick = [PipelineNode(ctx)], []
+        else:
+            ctxs, nodes = four_nodes(bus, model_path, **extra)
+            tick = [ctxs["certifier"]]
+        certs = bus.published["/certification"]
+        try:
+            bus.publish("/cam/points", bad)
+            assert wait_for(lambda: len(certs) >= 1, 60, tick=tick), mode
+            for topic, msg in frame_messages(good_stamp).items():
+                bus.publish(topic, msg)
+            assert wait_for(lambda: len(certs) >= 2, 60, tick=tick), f"{mode}: the RGB-D frame after the bad cloud was not certified"
+            time.sleep(0.3)
+            assert stamps_of(certs) == [bad_stamp, good_stamp] and not bus.errors, (mode, stamps_of(certs), bus.errors)
+            first, second = (msgbuild.parse_certification(m) for m in certs)
+            assert all(v["level"] == 2 and "point_step" in v["message"] for v in first.values()), first
+            assert all(v["level"] in (0, 1) for v in second.values()), second
+        finally:
+            for nd in nodes:
+                nd.close()
+            bus.close()

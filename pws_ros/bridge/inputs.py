@@ -13,7 +13,9 @@ the depth -> colour extrinsic is known (:meth:`InputAssembler.set_extrinsic`: fr
 extrinsics topic) and the depth stream's CameraInfo arrives; otherwise they are refused.
 
 In ``input_mode: auto`` the first source that completes a frame is used from then on (the other is
-ignored and counted), so a camera publishing both points and images is not certified twice.
+ignored and counted), so a camera publishing both points and images is not certified twice; in the
+nodes, once one of its frames converts (:meth:`InputAssembler.conversion_done`): a malformed message
+cannot lock the other source out.
 """
 from __future__ import annotations
 
@@ -79,6 +81,7 @@ class InputAssembler:
         self.frames = 0         # complete frames produced
         self._last_stamp: int | None = None
         self.locked_source: str | None = None if self.mode == "auto" else self.mode
+        self._lock_confirmed = self.mode != "auto"   # auto: locked for good by the first frame that converts
         # a depth + colour pair matched before the CameraInfo it needs arrived (camera_info_sync: latest;
         # and the depth camera's, where depth must be registered): held (the newest one only) and
         # completed by that CameraInfo instead of being lost
@@ -105,7 +108,7 @@ class InputAssembler:
 
     def _emit(self, frame: RawFrame) -> RawFrame | None:
         if self.locked_source is None:
-            self.locked_source = frame.source
+            self.locked_source = frame.source   # tentative in auto mode until a frame converts (conversion_done)
         if self.config.min_period_s > 0 and self._last_stamp is not None and \
                 0 <= frame.stamp_ns - self._last_stamp < self.config.min_period_s * 1e9:
             self.skipped += 1
@@ -113,6 +116,20 @@ class InputAssembler:
         self._last_stamp = frame.stamp_ns
         self.frames += 1
         return frame
+
+    def conversion_done(self, source: str, ok: bool) -> None:
+        """The worker's verdict on a frame of ``source`` (the nodes call it after :func:`convert`). In
+        ``auto`` mode the first source to complete a frame is used from then on only once one of its
+        frames converts: a frame that fails before that (a malformed or hostile PointCloud2 on a
+        camera's unused topic, say) releases the source, so it cannot shut the real camera out. Callers
+        that never call this (``pws replay``) keep the first source, as before."""
+        with self._lock:
+            if self._lock_confirmed or self.locked_source != source:
+                return
+            if ok:
+                self._lock_confirmed = True
+            else:
+                self.locked_source = None
 
     @property
     def dropped(self) -> int:

@@ -44,10 +44,12 @@ class CloudListenerNode(WorkerNode):
         try:
             frame = convert(raw, self.ctx.config, self.frontend.assembler.fallback)
         except Exception as exc:  # noqa: BLE001 - bad input: the frame's ERROR certification comes from the certifier
+            self.frontend.assembler.conversion_done(raw.source, False)
             reason = str(exc) if isinstance(exc, PwsError) else f"unexpected {type(exc).__name__}: {exc}"
             self.pub_errors.publish(scheme.input_error_message(raw.stamp_ns, str(raw.header.frame_id), reason, T))
             self.failed += 1
             raise PwsError(f"input: {reason}") from None
+        self.frontend.assembler.conversion_done(raw.source, True)
         # camera_info first: the planner pairs the two by stamp
         self.pub_info.publish(msgbuild.camera_info_from_intrinsics(raw.header, frame.intrinsics, T))
         self.pub_cloud.publish(msgbuild.cloud_to_pointcloud2(raw.header, frame.cloud, T))

@@ -72,12 +72,14 @@ class PipelineNode(WorkerNode):
         try:
             frame = convert(raw, cfg, self.frontend.assembler.fallback)
         except Exception as exc:  # noqa: BLE001 - bad input: this frame's certification is an ERROR
+            self.frontend.assembler.conversion_done(raw.source, False)
             reason = str(exc) if isinstance(exc, PwsError) else f"unexpected {type(exc).__name__}: {exc}"
             self.frame_errors += 1
             self.last_frame_error = f"input: {reason}"
             certs = [self.engine.error_for(a, f"input: {reason}") for a in cfg.axes]
             self._publish(raw, certs, compute_ms=0.0)
             raise PwsError(f"input: {reason}") from None
+        self.frontend.assembler.conversion_done(raw.source, True)
         result = self.engine.process(frame.cloud, frame.intrinsics, raw.stamp_ns, frame_id=raw.header.frame_id,
                                      preview_every=cfg.preview_every if cfg.publish_preview else 0,
                                      should_stop=lambda: self.worker.stopping)
