@@ -490,6 +490,29 @@ def test_refine_plan_keeps_the_covered_run():
     assert set(np.round(out.alphas, 9)) == set(np.round(sorted(want), 9))
 
 
+def test_a_plan_at_the_grid_cap_starts_from_every_other_point():
+    """The adaptive anchors begin from every other point of a plan already at the grid cap (0 and both
+    ends kept), so the refinement has room; a smaller plan, or the four-process certifier's received
+    frames, are used as they are."""
+    from types import SimpleNamespace
+
+    from pws_ros.core.certify import CertifyConfig, _FixedGeometry, _RendererGeometry
+
+    im = make_imaging("surfel", CAM, (3, 4), background=0.5, border=0)
+    config = CertifyConfig(max_partitions=9)
+    geometry = _RendererGeometry(SimpleNamespace(imaging=im), config)
+    full = Plan("pws_of", "tz", 1.0, 0.25, 9, make_grid(1.0, 0.25))
+    got = geometry.start(full)
+    assert list(got.alphas) == [-1.0, -0.5, 0.0, 0.5, 1.0] and got.num_partitions == 5
+    assert got.details["thinned_from"] == 9 and got.delta_alpha == 0.5
+    small = Plan("pws_of", "tz", 1.0, 0.5, 5, make_grid(1.0, 0.5))
+    assert geometry.start(small) is small
+    # alpha = 0 at an odd index: the odd points are kept, and both ends
+    odd = Plan("pws_of", "tz", 1.0, 0.4, 9, np.array([-1.0, -0.6, -0.2, 0.0, 0.3, 0.6, 0.8, 0.9, 1.0]))
+    assert list(geometry.start(odd).alphas) == [-1.0, -0.6, 0.0, 0.6, 0.9, 1.0]
+    assert _FixedGeometry(np.zeros((9, 3, 4, 3)), None).start(full) is full
+
+
 def test_covered_run_is_the_run_around_the_centre():
     """The run a blocked placement covers (kept unrefined by the extra round of _certify_anchored)."""
     from pws_ros.core.certify import _covered_run

@@ -355,6 +355,18 @@ class _RendererGeometry:
         self._bounds_of = None
         self._last = None   # the last grid bounded and its HullValues (a refinement bounds only its new segments)
 
+    def start(self, plan: Plan) -> Plan:
+        """The grid to begin with. A plan already at the grid cap leaves the refinement no room, so every
+        other point is dropped (0 and both ends kept): the refinement puts points back where neighbouring
+        frames differ by more than the target allows. Only the grid's tightness depends on it."""
+        n = len(plan.alphas)
+        if n < max(5, grid_cap(self.renderer.imaging, self.config)):
+            return plan
+        centre = int(np.searchsorted(plan.alphas, 0.0))
+        alphas = plan.alphas[np.union1d(np.arange(centre % 2, n, 2), [0, n - 1])]
+        return Plan(plan.method, plan.axis, plan.radius, float(np.diff(alphas).max()), len(alphas), alphas, plan.unit,
+                    dict(plan.details, thinned_from=n))
+
     def frames(self, plan: Plan) -> np.ndarray:
         return self.renderer.render_batch(plan.alphas).cpu().numpy()
 
@@ -388,6 +400,9 @@ class _FixedGeometry:
 
     def frames(self, plan: Plan) -> np.ndarray:
         return self._frames
+
+    def start(self, plan: Plan) -> Plan:
+        return plan
 
     def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
                keep: tuple[float, float] | None = None) -> tuple[Plan, np.ndarray]:
@@ -524,6 +539,7 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     max_anchors = int(config.num_anchors)
     total_work = config.n0 + max_anchors * config.n
     t0 = time.perf_counter()
+    plan = geometry.start(plan)
     frames = geometry.frames(plan)
     t_render = timings.get("render", 0.0) + time.perf_counter() - t0
     zero = int(np.searchsorted(plan.alphas, 0.0))  # the selection frame: alpha = 0 is on every grid
