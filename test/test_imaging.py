@@ -515,11 +515,11 @@ def test_a_plan_at_the_grid_cap_starts_from_every_other_point():
 
 def test_covered_run_is_the_run_around_the_centre():
     """The run a blocked placement covers (kept unrefined by the extra round of _certify_anchored)."""
-    from pws_ros.core.certify import _covered_run
+    from pws_ros.core.coverage import covered_run
 
-    assert _covered_run(np.array([False, True, True, True, False, True]), np.arange(7.0) - 2, 2) == (-1.0, 2.0)
-    assert _covered_run(np.array([True, False, True, True]), np.arange(5.0) - 2, 2) == (0.0, 2.0)
-    assert _covered_run(np.array([False, False]), np.array([-1.0, 0.0, 1.0]), 1) == (0.0, 0.0)
+    assert covered_run(np.array([False, True, True, True, False, True]), np.arange(7.0) - 2, 2) == (-1.0, 2.0)
+    assert covered_run(np.array([True, False, True, True]), np.arange(5.0) - 2, 2) == (0.0, 2.0)
+    assert covered_run(np.array([False, False]), np.array([-1.0, 0.0, 1.0]), 1) == (0.0, 0.0)
 
 
 def test_memory_ceiling_keeps_the_refined_grid_small_instead_of_failing(monkeypatch):

@@ -163,13 +163,14 @@ def cloud_from_pointcloud2(msg: Any) -> CloudConversion:
     the message had colour (without it every point is grey 0.5).
     """
     arr = pointcloud2_to_arrays(msg)
+    return CloudConversion(_valid_cloud(arr), arr.shape if arr.organized else None, arr.rgb is not None, arr)
+
+
+def _valid_cloud(arr: PointCloudArrays) -> Cloud:
+    """The cloud of the valid points (grey 0.5 without colour)."""
     pts = arr.xyz[arr.valid]
-    if arr.rgb is not None:
-        colors = arr.rgb[arr.valid]
-    else:
-        colors = np.full((len(pts), 3), 0.5, dtype=np.float32)
-    cloud = Cloud(pts, colors)
-    return CloudConversion(cloud, arr.shape if arr.organized else None, arr.rgb is not None, arr)
+    colors = arr.rgb[arr.valid] if arr.rgb is not None else np.full((len(pts), 3), 0.5, dtype=np.float32)
+    return Cloud(pts, colors)
 
 
 def within_depth(conv: CloudConversion, max_depth: float) -> CloudConversion:
@@ -182,9 +183,8 @@ def within_depth(conv: CloudConversion, max_depth: float) -> CloudConversion:
         valid = arr.valid & ~(arr.xyz[:, 2] > max_depth)
     if valid.sum() == arr.valid.sum():
         return conv
-    colors = arr.rgb[valid] if arr.rgb is not None else np.full((int(valid.sum()), 3), 0.5, dtype=np.float32)
     arrays = replace(arr, valid=valid)
-    return CloudConversion(Cloud(arr.xyz[valid], colors), conv.organized_shape, conv.has_color, arrays)
+    return CloudConversion(_valid_cloud(arrays), conv.organized_shape, conv.has_color, arrays)
 
 
 def intrinsics_from_organized_cloud(arrays: PointCloudArrays, *, frame_id: str | None = None,

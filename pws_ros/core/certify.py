@@ -43,7 +43,7 @@ from .cloud import Cloud
 from .errors import require
 from .imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, UNCOVERED, HullValues, Imaging, SurfelRenderer, make_imaging, make_renderer, plan_for, hulls_within, segment_bounds
 from .model import LoadedModel
-from .coverage import (COVERAGES, FRONTIER_PARTS, FRONTIER_ROUNDS, AdaptiveAnchorsRule, cohen_radii, coverage_rule, frontier_reach,
+from .coverage import (COVERAGES, FRONTIER_PARTS, FRONTIER_ROUNDS, AdaptiveAnchorsRule, cohen_radii, coverage_rule, covered_run, frontier_reach,
                        packing_bound, segment_covers)
 from .motion import UNITS, parse_axis
 from .partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, Plan, check_radius, validate_grid
@@ -440,17 +440,6 @@ def refine_for_target(renderer: SurfelRenderer, plan: Plan, frames: np.ndarray, 
     return plan, frames
 
 
-def _covered_run(covered: np.ndarray, alphas: np.ndarray, centre: int) -> tuple[float, float]:
-    """``[alpha_lo, alpha_hi]`` of the run of covered segments around the grid point ``centre``."""
-    hi = centre
-    while hi < len(covered) and covered[hi]:
-        hi += 1
-    lo = centre - 1
-    while lo >= 0 and covered[lo]:
-        lo -= 1
-    return float(alphas[lo + 1]), float(alphas[hi])
-
-
 def _predicted_reach(rule: AdaptiveAnchorsRule, anchor_rows: dict[int, np.ndarray], est_idx: np.ndarray, plan: Plan,
                      centre: int, radius: float) -> float:
     """The radius the placed anchors would cover if each got the Cohen radius ``radius`` (a planning value)."""
@@ -600,7 +589,7 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
             # the placement stopped at a segment no grid frame nearby covers, with anchors to spare: the run it
             # covers stays as it is and only the grid beyond it is refined (its anchors keep covering it)
             D2 = np.stack([anchor_rows[int(a)] for a in est_idx])
-            keep = _covered_run(rule.radius(np.full(len(est_idx), target), D2, plan.alphas, centre)[1], plan.alphas, centre)
+            keep = covered_run(rule.radius(np.full(len(est_idx), target), D2, plan.alphas, centre)[1], plan.alphas, centre)
         for _ in range(REFINE_ROUNDS - 1):
             finer, finer_frames = geometry.refine(finer, finer_frames, target, max_anchors, keep=keep)
         t_render += time.perf_counter() - t0

@@ -63,18 +63,22 @@ def symmetric_reach(covered: np.ndarray, centre: int) -> int:
     return j
 
 
+def covered_run(covered: np.ndarray, alphas: np.ndarray, centre: int) -> tuple[float, float]:
+    """``(alpha_lo, alpha_hi)``: the run of covered segments around the grid point ``centre`` (alpha = 0)."""
+    hi = centre
+    while hi < len(covered) and covered[hi]:
+        hi += 1
+    lo = centre - 1
+    while lo >= 0 and covered[lo]:
+        lo -= 1
+    return float(alphas[lo + 1]), float(alphas[hi])
+
+
 def covered_radius(covered: np.ndarray, alphas: np.ndarray, centre: int) -> float:
     """Largest ``r`` such that every segment inside ``[-r, r]`` is covered (the grid need not be symmetric):
     the smaller of the covered runs from ``alpha = 0`` to the right and to the left."""
-    i = centre
-    while i < len(covered) and covered[i]:
-        i += 1
-    right = float(alphas[i])
-    i = centre - 1
-    while i >= 0 and covered[i]:
-        i -= 1
-    left = -float(alphas[i + 1])
-    return min(right, left)
+    lo, hi = covered_run(covered, alphas, centre)
+    return min(hi, -lo)
 
 
 def paper_reach(pair_bound_sq: np.ndarray, R: np.ndarray, centre: int) -> int:
@@ -283,5 +287,5 @@ def coverage_rule(name: str, num_anchors: int = 9, imaging: str = "paper"):
 
 
 __all__ = ["COVERAGES", "FRONTIER_PARTS", "FRONTIER_ROUNDS", "AdaptiveAnchorsRule", "AnchorsRule", "PairwiseRule", "PaperRule", "anchor_indices", "cohen_radii",
-           "covered_radius", "coverage_rule", "frontier_reach", "segment_covers",
+           "covered_radius", "covered_run", "coverage_rule", "frontier_reach", "segment_covers",
            "packing_bound", "paper_reach", "symmetric_reach"]
