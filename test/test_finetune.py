@@ -109,6 +109,45 @@ def test_split_by_time():
             cache(n).split(h)
 
 
+def test_teacher_stability_marks_frames_whose_answer_noise_or_motion_changes():
+    """Three frames, checked against answers worked out by hand: frame 0's teacher looks at a pixel far
+    from its threshold (stable), frame 1's at a pixel on the threshold (noise flips it about half the
+    time), frame 2's motion view changes that pixel (motion flips it)."""
+    from pws_ros.finetune.evaluate import STABILITY_SAMPLES, stability_summary, summarize, teacher_stability
+
+    views = np.zeros((3, 2, 4, 4, 3), np.uint8)
+    views[0, :, 0, 0, 0] = 200            # far above the threshold in both views
+    views[1, :, 0, 0, 0] = 128            # 128/255 = 0.50196: the threshold, within noise of 0.01
+    views[2, 0, 0, 0, 0] = 200
+    views[2, 1, 0, 0, 0] = 10             # the motion view crosses the threshold
+    cache = RecordingCache(0, "rec", Path("."), views, np.zeros((3, 2), np.float32), [{"index": i} for i in range(3)])
+
+    def teacher(x):                        # class 1 where the pixel is at least 128/255, else 0
+        above = (x[:, 0, 0, 0] >= 128 / 255).float()
+        return torch.stack([1 - above, above], dim=1)
+
+    top = np.array([1, 1, 1])
+    st = teacher_stability(teacher, [cache], [(0, 0), (0, 1), (0, 2)], top, seed=0, device=torch.device("cpu"))
+    assert st["noise"][0] == 1.0 and st["noise"][2] == 1.0
+    assert 0.1 <= st["noise"][1] <= 0.9, st["noise"]          # about half of the copies fall below
+    assert list(st["motion"]) == [1.0, 1.0, 0.0]
+    assert list(st["stable"]) == [True, False, False]
+    summ = stability_summary(st)
+    assert summ["stable_frames"] == 1 and summ["frames"] == 3 and summ["samples"] == STABILITY_SAMPLES
+    counts = np.array([[0, 10], [10, 0], [0, 10]])         # a smoothed answer: 1, 0, 1
+    out = summarize(counts, top, np.full(3, -1), sigma=0.25, stable=st["stable"])
+    assert out["agreement"] == pytest.approx(2 / 3) and out["agreement_on_stable"] == 1.0 and out["stable_frames"] == 1
+
+
+def test_report_states_the_teachers_stability(baseline):
+    _tmp, result, _read = baseline
+    r = result.report
+    st = r["teacher_stability"]
+    assert st["frames"] == 4 and 0 <= st["stable_frames"] <= 4
+    assert sum(row["teacher_stable"] for row in r["per_frame"]) == st["stable_frames"]
+    assert ("agreement_on_stable" in r["after"]) and r["after"]["stable_frames"] == st["stable_frames"]
+
+
 def test_resume_after_interrupt_gives_the_same_weights(baseline, tmp_path):
     _tmp, base, _read = baseline
     stop_at = 4   # mid-epoch (3 steps an epoch): the checkpoint is the one written on SIGINT

@@ -2,7 +2,8 @@
 noise (default: EfficientNet-Lite0 with its ImageNet weights, the optional extra ``.[efficientnet]``)
 tuned at each sigma on the frames of a TUM-format sequence, evaluated on the held-out end of that
 sequence and on other recordings (e.g. the Kinect and RealSense recordings), printed side by side:
-agreement of the smoothed prediction with the original model's clean prediction, the p_A median,
+agreement of the smoothed prediction with the original model's clean prediction (and on the frames where
+that prediction is stable, the agreement's ceiling: :func:`pws_ros.finetune.evaluate.teacher_stability`), the p_A median,
 the training time and the peak memory; then, per evaluated frame (``--certify-heldout K`` frames of
 the held-out end, every frame of the ``--eval`` recordings) and axis, the tuned model's certified
 radius next to the ceiling (the radius of a classifier that never changes its answer,
@@ -79,7 +80,7 @@ def evaluate_recording(bag: Path, original: Path, tuned: dict[str, Path], opts: 
     from ..core.model import load_model
     from ..core.render import resolve_device
     from ..finetune.cache import FramePreparer
-    from ..finetune.evaluate import smoothed_counts, summarize
+    from ..finetune.evaluate import smoothed_counts, stability_summary, summarize, teacher_stability
     from ..replay.interrupt import StopSignals
 
     device = resolve_device(opts.device)
@@ -96,12 +97,13 @@ def evaluate_recording(bag: Path, original: Path, tuned: dict[str, Path], opts: 
     items = [(0, k) for k in range(cache.count)]
     top = np.asarray([f["teacher"] for f in cache.frames])
     truth = np.asarray([f["truth_label"] for f in cache.frames])
-    out = {}
+    stab = teacher_stability(teacher, [cache], items, top, seed=opts.seed, device=device)
+    out: dict[str, Any] = {"teacher_stability": stability_summary(stab)}
     for name, path in {"original": original, **tuned}.items():
         m = teacher if name == "original" else load_model(path, device=device)
         counts = smoothed_counts(m, [cache], items, sigma=sigma, n=opts.eval_samples, seed=opts.seed, batch_size=opts.batch_size,
                                  device=device, num_classes=teacher.num_classes)
-        out[name] = summarize(counts, top, truth, sigma=sigma)
+        out[name] = summarize(counts, top, truth, sigma=sigma, stable=stab["stable"])
     return out
 
 
@@ -253,7 +255,8 @@ def run_bench(src: Path, work: Path, *, model: str = "lite0", sigmas: tuple[floa
             res = finetune(opts)
             require(res.exit_code == 0, res.message or f"finetune stopped ({res.exit_code})")
             rep = res.report
-            entry = {"heldout": {"before": rep["before"], "after": rep["after"]}, "seconds": rep["seconds"], "memory": rep["memory"],
+            entry = {"heldout": {"before": rep["before"], "after": rep["after"], "teacher_stability": rep.get("teacher_stability")},
+                     "seconds": rep["seconds"], "memory": rep["memory"],
                      "frames": rep["recordings"], "wall_s": round(time.perf_counter() - t0, 1), "model": str(out)}
         entry["report"] = str(opts.report_path())
         recs = {k: v for k, v in entry.get("recordings", {}).items() if k in {str(eb) for eb in eval_bags}}
@@ -302,14 +305,17 @@ def table(rows: dict[str, Any]) -> str:
     def f(v: Any) -> str:
         return "-" if v is None else f"{v:.3f}"
 
-    lines = [f"{'sigma':>6s}  {'frames':42s} {'agree before':>12s} {'agree after':>12s} {'p_A med before':>14s} {'p_A med after':>14s}"]
+    lines = [f"{'sigma':>6s}  {'frames':42s} {'agree before':>12s} {'agree after':>12s} {'p_A med before':>14s} {'p_A med after':>14s}"
+             f" {'teacher stable':>14s} {'agree on stable after':>21s}"]
     for s, e in rows["sigmas"].items():
-        sets = [("held-out end of the sequence", e["heldout"]["before"], e["heldout"]["after"])]
+        sets = [("held-out end of the sequence", e["heldout"]["before"], e["heldout"]["after"], e["heldout"].get("teacher_stability"))]
         for name, r in e.get("recordings", {}).items():
-            sets.append((Path(name).name, r["original"], r["tuned"]))
-        for name, b, a in sets:
+            sets.append((Path(name).name, r["original"], r["tuned"], r.get("teacher_stability")))
+        for name, b, a, st in sets:
+            stable = "-" if not st else f"{st['stable_frames']} of {st['frames']}"
             lines.append(f"{s:>6s}  {name[:42]:42s} {f(b['agreement']):>12s} {f(a['agreement']):>12s} "
-                         f"{f(b['p_a_quantiles'].get('q50')):>14s} {f(a['p_a_quantiles'].get('q50')):>14s}")
+                         f"{f(b['p_a_quantiles'].get('q50')):>14s} {f(a['p_a_quantiles'].get('q50')):>14s}"
+                         f" {stable:>14s} {f(a.get('agreement_on_stable')):>21s}")
         lines.append(f"{'':6s}  training {e['seconds']['training']:.0f} s, frames {e['seconds']['frames']:.0f} s, "
                      f"peak memory {e['memory']['peak_rss_mb']:.0f} MB")
     cert = [(s, e) for s, e in rows["sigmas"].items() if e.get("certified")]

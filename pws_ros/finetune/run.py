@@ -23,7 +23,7 @@ from ..core.render import resolve_device
 from ..replay.interrupt import Interrupted, StopSignals
 from ..replay.progress_log import Progress
 from .cache import FramePreparer, atomic_write_text
-from .evaluate import heldout_items, per_frame, smoothed_counts, summarize
+from .evaluate import heldout_items, per_frame, smoothed_counts, stability_summary, summarize, teacher_stability
 from .options import FinetuneOptions, FinetuneResult
 from .train import Student, Trainer, TrainSet, atomic_save, load_checkpoint, quiet_jit
 
@@ -211,6 +211,12 @@ class FinetuneRun:
                 np.save(before_path.with_name(before_path.name + ".tmp.npy"), before)
                 os.replace(before_path.with_name(before_path.name + ".tmp.npy"), before_path)
 
+        # the ceiling of the agreement: on which held-out frames the teacher's own answer is stable
+        stab = teacher_stability(teacher, caches, held, teacher_top, seed=o.seed, device=device)
+        self.log("info", f"the teacher keeps its clean answer (>= 90% of copies with noise sigma 0.01 and every motion "
+                         f"view) on {int(stab['stable'].sum())} of {len(held)} held-out frames: the agreement any smoothed "
+                         "classifier can be expected to reach there")
+
         # 3. training
         student = Student(o.mode, Path(o.model), device, channels=o.denoiser_channels, depth=o.denoiser_depth,
                           init_denoiser=o.init_denoiser)
@@ -277,7 +283,7 @@ class FinetuneRun:
         tuned = load_model(model_path, device=device)
         after = self._evaluate(tuned, caches, held, sigma, device, teacher.num_classes, "evaluating the tuned model")
 
-        report = self._report(teacher, caches, splits, held, before, after, teacher_top, truth, sigma, trainer, student,
+        report = self._report(teacher, caches, splits, held, before, after, teacher_top, truth, stab, sigma, trainer, student,
                               device, prep_s, train_s, time.perf_counter() - t_start, model_path, paths[1:])
         report_path = self.opts.report_path()
         with stop.section():
@@ -327,15 +333,18 @@ class FinetuneRun:
             paths.append(o.denoiser_path())
         return paths
 
-    def _report(self, teacher, caches, splits, held, before, after, teacher_top, truth, sigma, trainer, student, device,
+    def _report(self, teacher, caches, splits, held, before, after, teacher_top, truth, stab, sigma, trainer, student, device,
                 prep_s, train_s, total_s, model_path, extra) -> dict:
         o = self.opts
-        b, a = summarize(before, teacher_top, truth, sigma=sigma), summarize(after, teacher_top, truth, sigma=sigma)
+        stable = stab["stable"]
+        b = summarize(before, teacher_top, truth, sigma=sigma, stable=stable)
+        a = summarize(after, teacher_top, truth, sigma=sigma, stable=stable)
         rows = []
-        for (ci, k), pb, pa in zip(held, per_frame(before, teacher_top), per_frame(after, teacher_top)):
+        for i, ((ci, k), pb, pa) in enumerate(zip(held, per_frame(before, teacher_top), per_frame(after, teacher_top))):
             f = caches[ci].frames[k]
             rows.append({"recording": caches[ci].bag, "index": f["index"], "stamp_ns": f["stamp_ns"],
-                         "teacher": teacher.class_name(f["teacher"]),
+                         "teacher": teacher.class_name(f["teacher"]), "teacher_stable": bool(stable[i]),
+                         "teacher_noise_keep": float(stab["noise"][i]), "teacher_motion_keep": float(stab["motion"][i]),
                          "truth": (teacher.class_name(f["truth_label"]) if f["truth_label"] >= 0 else None),
                          "before": {**pb, "top": teacher.class_name(pb["top"])}, "after": {**pa, "top": teacher.class_name(pa["top"])}})
         return {
@@ -347,7 +356,7 @@ class FinetuneRun:
                         "prediction; p_a = the top class's share of the copies, p_teacher = the clean prediction's share; "
                         "l2_radius_median = median over frames of sigma * Phi^-1(p_a lower bound, alpha 0.001) where the "
                         "smoothed prediction agrees (0 elsewhere); the same noise draws before and after"),
-            "before": b, "after": a,
+            "before": b, "after": a, "teacher_stability": stability_summary(stab),
             "recordings": [{"bag": c.bag, "frames": c.count, "trained_on": len(s), "held_out": len(h),
                             "input_frames_seen": c.info.get("input_frames_seen"),
                             "input_frames_skipped": c.info.get("input_frames_skipped")} for c, (s, h) in zip(caches, splits)],
@@ -397,6 +406,11 @@ def summary_lines(result: FinetuneResult) -> list[str]:
              f"{'p_A median':28s}{q(b['p_a_quantiles'], 'q50'):>10s}{q(a['p_a_quantiles'], 'q50'):>10s}",
              f"{'p_A 10% quantile':28s}{q(b['p_a_quantiles'], 'q10'):>10s}{q(a['p_a_quantiles'], 'q10'):>10s}",
              f"{'p_teacher mean':28s}{q(b, 'p_teacher_mean'):>10s}{q(a, 'p_teacher_mean'):>10s}"]
+    st = r.get("teacher_stability")
+    if st:
+        lines.append(f"{'agreement, stable frames':28s}{q(b, 'agreement_on_stable'):>10s}{q(a, 'agreement_on_stable'):>10s}"
+                     f"   ({st['stable_frames']} of {st['frames']} held-out frames: the teacher keeps its answer under "
+                     f"noise sigma {st['sigma']:g} and the motion views; the others bound the agreement)")
     if "accuracy_vs_truth" in a:
         lines.append(f"{'accuracy (ground truth)':28s}{q(b, 'accuracy_vs_truth'):>10s}{q(a, 'accuracy_vs_truth'):>10s}")
     s, m = r["seconds"], r["memory"]
