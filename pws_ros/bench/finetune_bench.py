@@ -86,7 +86,7 @@ def evaluate_recording(bag: Path, original: Path, tuned: dict[str, Path], opts: 
     device = resolve_device(opts.device)
     teacher = load_model(original, device=device)
     eopts = replace(opts, views=0, max_frames=None)
-    engine = FrameCertifier(replace(eopts.config, sigma=sigma, device=str(device)), model=teacher, load=False,
+    engine = FrameCertifier(replace(eopts.config, sigma=sigma, device=str(device), batch_size=opts.batch_size), model=teacher, load=False,
                             log=lambda _l, _m: None)
     import hashlib
 

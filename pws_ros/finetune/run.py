@@ -156,10 +156,11 @@ class FinetuneRun:
 
         from ..bridge.engine import FrameCertifier
 
-        # the engine only makes the imaging; its sigma is the teacher's own (no "sigma differs" warning here)
+        # the engine only makes the imaging; its sigma is the teacher's own (no "sigma differs" warning here) and its
+        # batch size this command's (no advice about a config batch size the command does not use)
         trained = teacher.meta.get("sigma")
         ecfg = replace(o.config, sigma=float(trained) if isinstance(trained, (int, float)) and trained > 0 else sigma,
-                       device=str(device))
+                       device=str(device), batch_size=int(o.batch_size))
         engine = FrameCertifier(ecfg, model=teacher, load=False,
                                 log=lambda level, msg: self.log("warn" if level in ("warn", "error") else "info", msg))
         result = FinetuneResult(None, None, {})
