@@ -432,6 +432,25 @@ def test_pointcloud2_roundtrip_through_builder():
     np.testing.assert_array_equal(again.points, back.points)
 
 
+def test_pointcloud2_carries_which_points_were_filled():
+    """The pws_filled field: the mask survives the builder and CDR point by point; a cloud without filled
+    points keeps the plain 16-byte layout (no field); a foreign cloud without the field has none."""
+    r = np.random.default_rng(6)
+    mask = r.random(30) < 0.3
+    cloud = Cloud(r.uniform(-1, 1, (30, 3)) + [0, 0, 3], r.integers(0, 256, (30, 3)).astype(np.uint8), filled_mask=mask)
+    assert cloud.filled == int(mask.sum()) > 0
+    msg = msgbuild.cloud_to_pointcloud2(header(), cloud, T)
+    assert msg.point_step == 20 and [f.name for f in msg.fields] == ["x", "y", "z", "rgb", cloudconv.FILLED_FIELD]
+    raw = T.typestore.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2")
+    back = cloudconv.cloud_from_pointcloud2(T.typestore.deserialize_cdr(raw, "sensor_msgs/msg/PointCloud2")).cloud
+    np.testing.assert_array_equal(back.filled_mask, mask)
+    assert back.filled == int(mask.sum())
+    np.testing.assert_allclose(back.points, cloud.points, rtol=1e-6)
+    plain = msgbuild.cloud_to_pointcloud2(header(), Cloud(cloud.points, cloud.colors), T)
+    assert plain.point_step == 16 and len(plain.fields) == 4
+    assert cloudconv.cloud_from_pointcloud2(plain).cloud.filled == 0 and cloudconv.cloud_from_pointcloud2(plain).cloud.filled_mask is None
+
+
 def organized_grid(intr: CameraIntrinsics, depth: np.ndarray) -> np.ndarray:
     rows, cols = np.mgrid[0: intr.height, 0: intr.width]
     z = depth

@@ -12,7 +12,7 @@ from collections import defaultdict
 import numpy as np
 import pytest
 
-from pws_ros.bridge import msgbuild, msgconv, scheme
+from pws_ros.bridge import cloudconv, msgbuild, msgconv, scheme
 from pws_ros.bridge.config import config_from_params
 from pws_ros.core.camera import CameraIntrinsics
 from pws_ros.nodes._common import TF_MESSAGE_TYPE
@@ -110,9 +110,11 @@ class Context:
             cb()
 
 
-def frame_messages(stamp_ns, color_size=(32, 24)):
+def frame_messages(stamp_ns, color_size=(32, 24), holes=False):
     mm = np.full((24, 32), 2000, np.uint16)
     mm[6:18, 8:20] = 1200
+    if holes:   # 2 x 6 pixels without depth, measured neighbours on both sides: depth_fill gives them a depth
+        mm[2:4, 3:9] = 0
     w, h = color_size
     rgb = np.random.default_rng(stamp_ns % 997).integers(0, 256, (h, w, 3), dtype=np.uint8)
     rgb[..., 0] = 230
@@ -297,6 +299,37 @@ def test_four_processes_match_the_pipeline(model_path, coverage):
         for nd in nodes:
             nd.close()
         bus2.close()
+
+
+def test_four_processes_state_the_filled_points_as_the_pipeline(model_path):
+    """A depth image with 12 holes: the pipeline's certificates count 12 filled points, and so do the
+    four processes' (the count crosses the cloud topic in the pws_filled field and the plan bundle)."""
+    from pws_ros.nodes.pipeline import PipelineNode
+
+    got = {}
+    for name in ("pipeline", "four"):
+        bus = Bus()
+        if name == "pipeline":
+            nodes, tick = [PipelineNode(Context(bus, "pipeline", **params(model_path)))], []
+        else:
+            ctxs, nodes = four_nodes(bus, model_path)
+            tick = [ctxs["certifier"]]
+        try:
+            for topic, msg in frame_messages(T0, holes=True).items():
+                bus.publish(topic, msg)
+            assert wait_for(lambda: len(bus.published["/certification"]) == 1, tick=tick)
+            got[name] = msgbuild.parse_certification(bus.published["/certification"][0])
+            clouds = bus.published["/cloud"]
+            assert len(clouds) == 1 and [f.name for f in clouds[0].fields][-1] == "pws_filled"
+            assert int(cloudconv.cloud_from_pointcloud2(clouds[0]).cloud.filled) == 12
+            assert not bus.errors
+        finally:
+            for nd in nodes:
+                nd.close()
+            bus.close()
+    for axis in ("tx", "tz"):
+        assert int(got["pipeline"][axis]["filled_points"]) == 12 == int(got["four"][axis]["filled_points"]), axis
+        assert got["four"][axis]["level"] in (0, 1)
 
 
 def test_four_processes_never_certify_an_incomplete_set(model_path):

@@ -20,6 +20,9 @@ from .msgconv import as_byte_array, byte_rows, frame_id_of, intrinsics_from_came
 
 # sensor_msgs/PointField datatypes
 POINTFIELD_DTYPES = {1: np.int8, 2: np.uint8, 3: np.int16, 4: np.uint16, 5: np.int32, 6: np.uint32, 7: np.float32, 8: np.float64}
+# A UINT8 field of the clouds this package publishes (``cloud``, ``plan/cloud``): 1 where the point's depth
+# was filled (depth_fill), not measured; it carries the certificate's filled_points across the four processes
+FILLED_FIELD = "pws_filled"
 POINTFIELD_NAMES = {1: "INT8", 2: "UINT8", 3: "INT16", 4: "UINT16", 5: "INT32", 6: "UINT32", 7: "FLOAT32", 8: "FLOAT64"}
 
 
@@ -33,6 +36,7 @@ class PointCloudArrays:
     valid: np.ndarray
     shape: tuple[int, int]
     frame_id: str = ""
+    filled: np.ndarray | None = None   # (M,) bool: the FILLED_FIELD of a cloud this package wrote (filled depth)
 
     @property
     def organized(self) -> bool:
@@ -153,7 +157,10 @@ def pointcloud2_to_arrays(msg: Any) -> PointCloudArrays:
         rgb = np.stack([(packed >> 16) & 0xFF, (packed >> 8) & 0xFF, packed & 0xFF], axis=1).astype(np.uint8)
     elif separate:
         rgb = np.stack([column(c) for c in ("r", "g", "b")], axis=1).astype(np.uint8)
-    return PointCloudArrays(xyz, rgb, valid, (height, width), frame_id_of(msg))
+    filled = None
+    if FILLED_FIELD in fields and fields[FILLED_FIELD][1] == 2 and fields[FILLED_FIELD][0] + 1 <= point_step:
+        filled = column(FILLED_FIELD) != 0
+    return PointCloudArrays(xyz, rgb, valid, (height, width), frame_id_of(msg), filled)
 
 
 def cloud_from_pointcloud2(msg: Any) -> CloudConversion:
@@ -170,7 +177,7 @@ def _valid_cloud(arr: PointCloudArrays) -> Cloud:
     """The cloud of the valid points (grey 0.5 without colour)."""
     pts = arr.xyz[arr.valid]
     colors = arr.rgb[arr.valid] if arr.rgb is not None else np.full((len(pts), 3), 0.5, dtype=np.float32)
-    return Cloud(pts, colors)
+    return Cloud(pts, colors, filled_mask=arr.filled[arr.valid] if arr.filled is not None else None)
 
 
 def within_depth(conv: CloudConversion, max_depth: float) -> CloudConversion:
@@ -239,7 +246,7 @@ def fill_organized(arrays: PointCloudArrays, intr: CameraIntrinsics, *, min_vali
     xyz[at, 2] = zf
     keep = arrays.valid | was_filled.reshape(-1)
     colors = arrays.rgb[keep] if arrays.rgb is not None else np.full((int(keep.sum()), 3), 0.5, dtype=np.float32)
-    return Cloud(xyz[keep], colors, filled=len(at))
+    return Cloud(xyz[keep], colors, filled_mask=was_filled.reshape(-1)[keep])
 
 
 def cloud_and_intrinsics_from_pointcloud2(msg: Any, info_msg: Any | None = None, fallback: CameraIntrinsics | None = None, *,

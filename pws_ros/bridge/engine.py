@@ -334,7 +334,7 @@ class FrameCertifier:
             bundle.errors = {a: str(exc) for a in bundle.axes}
             return bundle
         bundle = PlanBundle(int(stamp_ns), frame_id or intr.frame_id, self.config.method, imaging.camera,
-                            list(self.config.axes), imaging=imaging)
+                            list(self.config.axes), imaging=imaging, filled_points=int(cloud.filled))
         if self.config.method == "cms":
             for a in bundle.axes:
                 bundle.errors[a] = "method cms is only available in the pipeline node (it samples random poses inside the certifier)"
@@ -393,6 +393,8 @@ class FrameCertifier:
                 plans[ax.axis] = plan
                 certs.append(self._guard(ax.axis, lambda: self.certify_rendered(rendered_plan_from_parts(plan, ax.frames, ax.bounds),
                                                                                 frame.stamp_ns, bundle.imaging)))
+            if bundle is not None:
+                certs[-1].filled_points = int(bundle.filled_points)   # as the pipeline: about the cloud with filled depth
             timings[ax.axis] = time.perf_counter() - t1
         timings["total"] = time.perf_counter() - t0
         return FrameResult(frame.stamp_ns, bundle.frame_id if bundle else "", certs, plans, bundle.camera if bundle else None, timings)

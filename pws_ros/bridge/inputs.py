@@ -263,7 +263,7 @@ def convert(frame: RawFrame, config: PwsConfig, fallback: CameraIntrinsics | Non
         has_color = True
         # the cloud as a PointCloud2 carries it (float32 x y z): the pipeline and the four-process chain
         # (where the cloud crosses a topic) then certify exactly the same points
-        cloud = Cloud(cloud.points.astype(np.float32), cloud.colors, cloud.filled)
+        cloud = Cloud(cloud.points.astype(np.float32), cloud.colors, cloud.filled, cloud.filled_mask)
     require(len(cloud) > 0, f"the input frame has no valid point ({frame.source})")
     return InputFrame(frame.source, frame.stamp_ns, frame.header, cloud, intr, has_color)
 

@@ -13,6 +13,7 @@ import numpy as np
 from ..core.cloud import Cloud
 from ..core.errors import PwsError, require
 from ..core.motion import camera_pose
+from .cloudconv import FILLED_FIELD
 from .diagnostics import (DIAGNOSTIC_EXTRA_KEYS, DIAGNOSTIC_KEYS, LEVEL_FOR_STATUS, STATUS_NAME_PREFIX, certificate_message,
                           certificate_values, certificates_to_diagnostic_array, diagnostic_array_to_dicts, health_status,
                           level_to_int, level_value, marker_text, markers_for, parse_certification)
@@ -88,7 +89,9 @@ def pack_rgb(colors: np.ndarray) -> np.ndarray:
 def cloud_to_pointcloud2(header: Any, cloud: Cloud, types: Any, organized_shape: tuple[int, int] | None = None) -> Any:
     """An xyz + packed-rgb ``PointCloud2`` (float32 x, y, z at 0, 4, 8; rgb at 12; point_step 16).
 
-    Unorganized (height 1) unless ``organized_shape`` ``(H, W)`` with ``H * W == len(cloud)``.
+    Unorganized (height 1) unless ``organized_shape`` ``(H, W)`` with ``H * W == len(cloud)``. A cloud
+    with filled points it knows (``cloud.filled_mask``) also gets the UINT8 field
+    :data:`~pws_ros.bridge.cloudconv.FILLED_FIELD` at 16 (1: filled depth; point_step 20).
     """
     n = len(cloud)
     if organized_shape is not None:
@@ -96,14 +99,22 @@ def cloud_to_pointcloud2(header: Any, cloud: Cloud, types: Any, organized_shape:
         require(H * W == n, f"organized shape {W}x{H} does not hold {n} points")
     else:
         H, W = 1, n
-    rec = np.zeros(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<f4")])
+    mask = cloud.filled_mask if cloud.filled > 0 else None
+    layout = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<f4")]
+    if mask is not None:
+        layout += [(FILLED_FIELD, "u1"), ("_pad", "u1", (3,))]
+    rec = np.zeros(n, dtype=layout)
     pts = np.asarray(cloud.points)
     rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
     rec["rgb"] = pack_rgb(cloud.colors)
     fields = [make(types.PointField, name=name, offset=off, datatype=7, count=1)
               for name, off in (("x", 0), ("y", 4), ("z", 8), ("rgb", 12))]
+    if mask is not None:
+        rec[FILLED_FIELD] = mask
+        fields.append(make(types.PointField, name=FILLED_FIELD, offset=16, datatype=2, count=1))
+    step = rec.dtype.itemsize
     return make(types.PointCloud2, header=header, height=H, width=W, fields=fields, is_bigendian=False,
-                point_step=16, row_step=16 * W, data=types.u8(rec.view(np.uint8).reshape(-1)),
+                point_step=step, row_step=step * W, data=types.u8(rec.view(np.uint8).reshape(-1)),
                 is_dense=bool(np.all(np.isfinite(pts))))
 
 

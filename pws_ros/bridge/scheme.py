@@ -7,7 +7,8 @@ Per input frame (source stamp ``S`` in ns, source optical frame ``F``):
     outruns planning, so it must not be looked up among the newer clouds on ``cloud``).
 ``plan`` — ``std_msgs/String`` (JSON, :func:`plan_bundle_to_json`)
     ``{"format": "pws_ros/plan-bundle/1", "stamp_ns": S, "frame_id": F, "method": ..., "axes": [...],
-    "camera": {...render intrinsics...}, "plans": {axis: Plan.to_dict()}, "errors": {axis: reason}}``.
+    "camera": {...render intrinsics...}, "plans": {axis: Plan.to_dict()}, "errors": {axis: reason},
+    "imaging": {...}, "filled_points": K}`` (K: points of the cloud with filled depth, 0 when absent).
     One message per input frame lists every configured axis: a plan, or the reason it could not be
     planned. The certifier knows from it which axes and how many frames to expect.
 ``plan/poses/<axis>`` — ``geometry_msgs/PoseArray``, header ``(S, F)``: the camera poses in partition
@@ -163,6 +164,7 @@ class PlanBundle:
     plans: dict[str, Any] = field(default_factory=dict)    # axis -> core.partition.Plan
     errors: dict[str, str] = field(default_factory=dict)   # axis -> reason
     imaging: Any = None                                    # core.imaging.Imaging (None: paper imaging at ``camera``)
+    filled_points: int = 0                                 # points of the planned cloud with filled depth (the certificates say it)
 
     def expected(self) -> dict[str, int | str]:
         """``{axis: frame count or error}`` for :meth:`PartitionAssembler.expect`."""
@@ -187,6 +189,7 @@ def plan_bundle_to_json(bundle: PlanBundle) -> str:
         "plans": {a: jsonable(p.to_dict(), inf="string") for a, p in bundle.plans.items()},
         "errors": dict(bundle.errors),
         "imaging": bundle.imaging.to_dict() if bundle.imaging is not None else None,
+        "filled_points": int(bundle.filled_points),
     }, allow_nan=False)
 
 
@@ -247,7 +250,10 @@ def plan_bundle_from_json(text: str, max_count: int | None = None) -> PlanBundle
         raw_im = d.get("imaging")
         require(raw_im is None or isinstance(raw_im, dict), f"plan imaging must be a mapping or null, got {_shown(raw_im)}")
         imaging = Imaging.from_dict(raw_im, cam) if raw_im and cam is not None else None
-        bundle = PlanBundle(stamp, d["frame_id"], d["method"], cam, axes, plans, errors, imaging)
+        filled = d.get("filled_points", 0)
+        require(isinstance(filled, int) and not isinstance(filled, bool) and 0 <= filled < 2**63,
+                f"plan filled_points must be a non-negative integer, got {_shown(filled)}")
+        bundle = PlanBundle(stamp, d["frame_id"], d["method"], cam, axes, plans, errors, imaging, filled)
     except KeyError as exc:
         raise PwsError(f"plan message lacks field {exc.args[0]!r}") from None
     except PwsError:

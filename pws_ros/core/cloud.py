@@ -26,11 +26,13 @@ def colors_to_float(colors: np.ndarray, what: str = "colors") -> np.ndarray:
 @dataclass(eq=False)
 class Cloud:
     """``points`` (N, 3) float64 metres in the camera optical frame; ``colors`` (N, 3) float32 in [0, 1];
-    ``filled``: how many of the points have a filled, not a measured, depth (:func:`fill_depth`)."""
+    ``filled``: how many of the points have a filled, not a measured, depth (:func:`fill_depth`);
+    ``filled_mask`` (N,) bool, where known: which ones (``filled`` is then its count)."""
 
     points: np.ndarray
     colors: np.ndarray
     filled: int = 0   # points whose depth was filled (:func:`fill_depth`), not measured
+    filled_mask: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         pts = np.asarray(self.points)
@@ -43,6 +45,11 @@ class Cloud:
         require(len(cols) == len(pts), f"points and colors differ in length ({len(pts)} vs {len(cols)})")
         self.points = np.ascontiguousarray(pts)
         self.colors = np.ascontiguousarray(colors_to_float(cols))
+        if self.filled_mask is not None:
+            mask = np.asarray(self.filled_mask, dtype=bool).reshape(-1)
+            require(len(mask) == len(pts), f"filled_mask has {len(mask)} entries for {len(pts)} points")
+            self.filled_mask = mask
+            self.filled = int(mask.sum())
 
     def __len__(self) -> int:
         return len(self.points)
@@ -149,10 +156,9 @@ def cloud_from_rgbd(depth_m: np.ndarray, rgb: np.ndarray, intr: CameraIntrinsics
     require(rgb.ndim == 3 and rgb.shape[2] == 3, f"colour image must have shape (H, W, 3), got {rgb.shape}")
     require(depth.shape == rgb.shape[:2], f"depth {depth.shape[1]}x{depth.shape[0]} and colour {rgb.shape[1]}x{rgb.shape[0]} differ in size")
     require(depth.shape == intr.shape, f"image {depth.shape[1]}x{depth.shape[0]} does not match camera {intr.width}x{intr.height}")
-    num_filled = 0
+    was_filled = None
     if fill == "row":
         depth, was_filled = fill_depth(depth, min_valid=min_valid)
-        num_filled = int(was_filled.sum())
     else:
         require_valid_share(valid_depth(depth), min_valid)
     valid = valid_depth(depth)
@@ -160,4 +166,5 @@ def cloud_from_rgbd(depth_m: np.ndarray, rgb: np.ndarray, intr: CameraIntrinsics
     z = depth[rows, cols]
     x = (cols - intr.cx) * z / intr.fx
     y = (rows - intr.cy) * z / intr.fy
-    return Cloud(np.stack([x, y, z], axis=1), colors_to_float(rgb, "colour image")[rows, cols], filled=num_filled)
+    return Cloud(np.stack([x, y, z], axis=1), colors_to_float(rgb, "colour image")[rows, cols],
+                 filled_mask=was_filled[rows, cols] if was_filled is not None else None)

@@ -3,7 +3,7 @@
 Inputs (sensor-data QoS by default): an organized or unorganized ``PointCloud2`` on ``points_topic``,
 or a registered depth ``Image`` (16UC1 mm / 32FC1 m) on ``depth_topic`` + colour ``Image`` on
 ``color_topic`` + ``CameraInfo`` on ``camera_info_topic``, matched by stamp. Outputs (reliable):
-``cloud`` (PointCloud2 x, y, z, rgb; source header) and ``cloud/camera_info`` (the intrinsics, same
+``cloud`` (PointCloud2 x, y, z, rgb, and ``pws_filled`` where depth was filled; source header) and ``cloud/camera_info`` (the intrinsics, same
 header). Health on ``/diagnostics``. Bad input is logged (throttled) and counted, never fatal; an input
 frame that cannot be converted is reported on ``cloud/errors`` (``std_msgs/String``, see
 :mod:`pws_ros.bridge.scheme`), which the planner and the certifier turn into that frame's ERROR
