@@ -81,8 +81,8 @@ def stability_summary(stab: dict[str, np.ndarray], *, sigma: float = STABILITY_S
             "noise_keep_mean": float(stab["noise"].mean()) if len(stable) else None,
             "motion_keep_mean": float(stab["motion"].mean()) if len(stable) else None,
             "meaning": (f"the teacher's clean answer kept on >= {STABILITY_SHARE:.0%} of {samples} copies with noise "
-                        f"sigma {sigma:g} and on every motion view: frames without such an answer bound the agreement "
-                        "any smoothed classifier can reach")}
+                        f"sigma {sigma:g} and on every motion view; on the other frames that little noise or the requested "
+                        "motion changes the teacher's answer, so no smoothed classifier can be expected to reproduce it")}
 
 
 def _quantiles(values: np.ndarray) -> dict[str, float]:

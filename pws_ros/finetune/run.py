@@ -411,7 +411,7 @@ def summary_lines(result: FinetuneResult) -> list[str]:
     if st:
         lines.append(f"{'agreement, stable frames':28s}{q(b, 'agreement_on_stable'):>10s}{q(a, 'agreement_on_stable'):>10s}"
                      f"   ({st['stable_frames']} of {st['frames']} held-out frames: the teacher keeps its answer under "
-                     f"noise sigma {st['sigma']:g} and the motion views; the others bound the agreement)")
+                     f"noise sigma {st['sigma']:g} and the motion views; on the others no smoothed classifier can be expected to agree)")
     if "accuracy_vs_truth" in a:
         lines.append(f"{'accuracy (ground truth)':28s}{q(b, 'accuracy_vs_truth'):>10s}{q(a, 'accuracy_vs_truth'):>10s}")
     s, m = r["seconds"], r["memory"]
