@@ -8,7 +8,7 @@ from ..core.certify import CertifyConfig
 from ..core.coverage import anchor_indices
 from ..core.imaging import make_imaging, make_renderer, plan_for, segment_bounds
 from ..core.motion import UNITS
-from .common import add_imaging_size_arg, add_plan_args, add_scene_args, add_uncovered_arg, emit, load_scene, positive_int
+from .common import add_imaging_size_arg, add_output_args, add_plan_args, add_scene_args, add_uncovered_arg, emit, load_scene, positive_int
 
 MAX_LISTED = 20
 
@@ -37,7 +37,7 @@ def register(sub) -> None:
     add_uncovered_arg(p)
     p.add_argument("--seed", type=int, default=0, help="seed of the random interior poses (default 0)")
     p.add_argument("--device", default=d.device, help="torch device: cpu or cuda[:N] (default cpu)")
-    p.add_argument("--json", action="store_true", help="print the audit report as JSON")
+    add_output_args(p, "print the audit report as JSON")
     p.set_defaults(func=run)
 
 

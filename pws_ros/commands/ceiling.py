@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from ..core.errors import PwsError, require
-from .common import image_size
+from .common import add_output_args, image_size
 
 DESCRIPTION = """\
 For each frame of a recording (or of several) and each axis: the certificate CEILING, the radius that a classifier
@@ -43,8 +43,7 @@ def register(subparsers) -> None:
                    help="the classifier input of the ceiling, height first as a model's input_size (default: the "
                         "model's declared input size)")
     p.add_argument("--max-frames", type=int, default=3, metavar="K", help="frames to measure (default 3)")
-    p.add_argument("--json", action="store_true", help="print the rows and the advice as JSON")
-    p.add_argument("--quiet", action="store_true", help="no progress")
+    add_output_args(p, "print the rows and the advice as JSON", "no progress")
     c = p.add_argument_group("certification (override the config, as in pws replay)")
     c.add_argument("--config", default=None, help="ROS 2 parameter file (default: config/pws.yaml if found, else built-in defaults)")
     c.add_argument("--axes", default=None, help="comma-separated axes (default: config axes, tz,ry)")

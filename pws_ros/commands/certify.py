@@ -7,7 +7,7 @@ from ..core.certify import METHODS, certify
 from ..core.model import load_denoiser, load_model
 from ..core.render import resolve_device
 from ..replay.progress_log import Progress
-from .common import add_plan_args, add_scene_args, add_smoothing_args, config_from_args, emit, load_scene
+from .common import add_output_args, add_plan_args, add_scene_args, add_smoothing_args, config_from_args, emit, load_scene
 
 
 def register(sub) -> None:
@@ -22,8 +22,7 @@ def register(sub) -> None:
     p.add_argument("--denoiser", metavar="D.pt", help="optional TorchScript denoiser applied after the noise")
     add_plan_args(p, methods=METHODS)
     add_smoothing_args(p)
-    p.add_argument("--json", action="store_true", help="print the certificate as JSON")
-    p.add_argument("--quiet", action="store_true", help="no progress (a bar on a terminal, else a line every 30 s)")
+    add_output_args(p, "print the certificate as JSON", "no progress (a bar on a terminal, else a line every 30 s)")
     p.set_defaults(func=run)
 
 

@@ -129,6 +129,14 @@ def add_smoothing_args(p: argparse.ArgumentParser) -> None:
     add_uncovered_arg(p)
 
 
+def add_output_args(p, json_help: str, quiet_help: str | None = None) -> None:
+    """The output flags the commands share: ``--json`` (``json_help`` says what it prints) and, for a command
+    that shows progress, ``--quiet`` (``quiet_help`` says what it silences)."""
+    p.add_argument("--json", action="store_true", help=json_help)
+    if quiet_help is not None:
+        p.add_argument("--quiet", action="store_true", help=quiet_help)
+
+
 def add_uncovered_arg(p) -> None:
     p.add_argument("--uncovered", choices=UNCOVERED, default="frame",
                    help="surfel imaging: what a pixel no surfel covers shows: frame = its colour in the alpha = 0 frame "

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from ..core.errors import PwsError, require
-from .common import image_size
+from .common import add_output_args, image_size
 
 DESCRIPTION = """\
 Turn your own PyTorch image classifier into the file that `pws certify`, `pws replay` and the ROS 2
@@ -60,7 +60,7 @@ def register(subparsers) -> None:
     p.add_argument("--std", type=_floats, metavar="S|R,G,B", help="input normalisation std of the module")
     p.add_argument("--imagenet", action="store_true", help="the ImageNet normalisation (mean 0.485,0.456,0.406, std 0.229,0.224,0.225)")
     p.add_argument("--sigma", type=float, metavar="S", help="Gaussian noise sigma the model was trained with (images in [0, 1]), if known")
-    p.add_argument("--json", action="store_true", help="print what was written as JSON")
+    add_output_args(p, "print what was written as JSON")
     p.set_defaults(func=run)
 
 

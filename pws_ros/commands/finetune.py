@@ -7,6 +7,8 @@ import json
 import sys
 from pathlib import Path
 
+from .common import add_output_args
+
 DESCRIPTION = """\
 Randomized smoothing certifies a classifier that keeps its answer under Gaussian noise of the sigma
 it is smoothed with; one trained without that noise mostly abstains. This command tunes a model file
@@ -95,8 +97,7 @@ def register(subparsers) -> None:
     r.add_argument("--overwrite", action="store_true", help="replace OUT and start over in an existing work folder")
     r.add_argument("--keep-work", action="store_true", help="keep the work folder (frame cache, checkpoint) after a finished run")
     r.add_argument("--checkpoint-every", type=float, default=60.0, metavar="S", help="seconds between checkpoints (default 60; 0 = epoch ends only)")
-    r.add_argument("--json", action="store_true", help="print the report as JSON on stdout instead of the summary")
-    r.add_argument("--quiet", action="store_true", help="no progress and no info lines")
+    add_output_args(r, "print the report as JSON on stdout instead of the summary", "no progress and no info lines")
     r.add_argument("--progress-interval", type=float, default=None, metavar="S",
                    help="when stderr is not a terminal: one progress line every S seconds (default 30; 0 = every step)")
 

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from ..core.imaging import make_imaging, plan_for
-from .common import add_imaging_size_arg, add_plan_args, add_scene_args, emit, load_scene
+from .common import add_imaging_size_arg, add_output_args, add_plan_args, add_scene_args, emit, load_scene
 
 
 def register(sub) -> None:
@@ -13,7 +13,7 @@ def register(sub) -> None:
     add_plan_args(p)
     add_imaging_size_arg(p)
     p.add_argument("--out", metavar="PLAN.json", help="also write the plan as JSON (input of `pws render --plan`)")
-    p.add_argument("--json", action="store_true", help="print the plan as JSON")
+    add_output_args(p, "print the plan as JSON")
     p.set_defaults(func=run)
 
 

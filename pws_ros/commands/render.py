@@ -7,7 +7,7 @@ from ..core.bounds import render_plan
 from ..core.errors import require
 from ..core.imaging import IMAGING_KINDS, make_imaging, render_plan_surfel
 from ..core.partition import Plan
-from .common import add_imaging_size_arg, add_render_factor_arg, add_scene_args, add_uncovered_arg, emit, load_scene
+from .common import add_imaging_size_arg, add_output_args, add_render_factor_arg, add_scene_args, add_uncovered_arg, emit, load_scene
 
 
 def register(sub) -> None:
@@ -25,7 +25,7 @@ def register(sub) -> None:
     add_imaging_size_arg(p)
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--out", required=True, metavar="F.npz", help="output .npz")
-    p.add_argument("--json", action="store_true", help="print a JSON summary")
+    add_output_args(p, "print a JSON summary")
     p.set_defaults(func=run)
 
 

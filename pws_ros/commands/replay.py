@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from ..core.errors import PwsError, require
+from .common import add_output_args
 
 DESCRIPTION = """\
 Certify every camera frame of a rosbag2 recording against camera motion, offline, with exactly the
@@ -159,8 +160,7 @@ def register(subparsers) -> None:
     o.add_argument("--no-compression", action="store_true", help="MCAP chunks without zstd")
     o.add_argument("--report", default=None, metavar="DIR", help="write DIR/frames.csv (per frame and axis), DIR/summary.json, "
                    "DIR/certified_accuracy_vs_radius.png and DIR/frames.png (radius and latency over time)")
-    o.add_argument("--json", action="store_true", help="print the summary as JSON on stdout instead of the table")
-    o.add_argument("--quiet", action="store_true", help="no progress (bar or lines) and no info lines (warnings and the summary still print)")
+    add_output_args(o, "print the summary as JSON on stdout instead of the table", "no progress (bar or lines) and no info lines (warnings and the summary still print)")
     o.add_argument("--progress-interval", type=float, default=None, metavar="S",
                    help="when stderr is not a terminal: one progress line (frames done, rate, ETA, last results) every S seconds "
                         "(default 30; 0 = after every frame)")

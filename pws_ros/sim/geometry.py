@@ -7,9 +7,10 @@ length (``t`` is returned in units of ``d``; with ``d = R_wc @ (x, y, 1)`` it is
 Colours are functions of the local surface position only (:class:`Texture`), so a ray caster and a
 surface sampler that hit the same surface point see the same albedo.
 
-Kept as one module on purpose (about 500 lines): the six primitives implement one interface
+Kept as one module on purpose (about 530 lines): the six primitives implement one interface
 (intersect, sample uniformly by area, inside test) with shared ray helpers (quadric roots, disc
-caps, nearest positive hit); each class is short, and splitting them would scatter one algorithm.
+caps, nearest positive hit; the cylinder and the cone share their nearest-hit search as solids of
+revolution); each class is short, and splitting them would scatter one algorithm.
 """
 from __future__ import annotations
 
@@ -264,31 +265,53 @@ class Box(Primitive):
 
 
 @dataclass
-class Cylinder(Primitive):
-    """Capped cylinder around local z, ``z in [-half_height, half_height]``."""
+class _Revolved(Primitive):
+    """A solid of revolution around local z: a quadric side between two heights, closed by flat discs.
+    The nearest hit is found here, once for both solids; a subclass gives
+    ``_side_quadric(o, d)`` -> ``(a, b, c)``, the side at the roots of ``a t^2 + 2 b t + c`` along each ray;
+    ``_side_heights()`` -> ``(z_lo, z_hi)``, where the side is; ``_discs()`` -> ``((height, radius), ...)``,
+    a hit on disc k reporting ``which = 2 + k``; ``_normals(p, which)`` -> the local normals at the hits."""
 
     radius: float = 0.1
+
+    def _intersect_local(self, o, d):
+        a, b, c = self._side_quadric(o, d)
+        z_lo, z_hi = self._side_heights()
+        side = _side_hits(o, d, a, b, c, z_lo, z_hi)
+        t, which = _smallest_positive(side[0], side[1], *(_disc_hit(o, d, z0, r) for z0, r in self._discs()))
+        return t, self._normals(_along(o, d, t), which)
+
+
+@dataclass
+class Cylinder(_Revolved):
+    """Capped cylinder around local z, ``z in [-half_height, half_height]``."""
+
     half_height: float = 0.1
 
     @property
     def area(self) -> float:
         return 2 * math.pi * self.radius * 2 * self.half_height + 2 * math.pi * self.radius**2
 
-    def _intersect_local(self, o, d):
-        r, h = self.radius, self.half_height
+    def _side_quadric(self, o, d):
         a = d[:, 0] ** 2 + d[:, 1] ** 2
         b = o[:, 0] * d[:, 0] + o[:, 1] * d[:, 1]
-        c = o[:, 0] ** 2 + o[:, 1] ** 2 - r * r
-        side = _side_hits(o, d, a, b, c, -h, h)
-        t, which = _smallest_positive(side[0], side[1], _disc_hit(o, d, -h, r), _disc_hit(o, d, h, r))
-        p = _along(o, d, t)
+        c = o[:, 0] ** 2 + o[:, 1] ** 2 - self.radius * self.radius
+        return a, b, c
+
+    def _side_heights(self):
+        return -self.half_height, self.half_height
+
+    def _discs(self):
+        return (-self.half_height, self.radius), (self.half_height, self.radius)
+
+    def _normals(self, p, which):
         n = np.zeros_like(p)
-        n[:, 0] = p[:, 0] / r
-        n[:, 1] = p[:, 1] / r
+        n[:, 0] = p[:, 0] / self.radius
+        n[:, 1] = p[:, 1] / self.radius
         capm = which >= 2
         n[capm] = 0.0
         n[capm, 2] = np.where(which[capm] == 2, -1.0, 1.0)
-        return t, n
+        return n
 
     def _sample_local(self, n, rng):
         r, h = self.radius, self.half_height
@@ -308,10 +331,9 @@ class Cylinder(Primitive):
 
 
 @dataclass
-class Cone(Primitive):
+class Cone(_Revolved):
     """Solid cone around local z: base disc of ``radius`` at z = 0, apex at z = ``height``."""
 
-    radius: float = 0.1
     height: float = 0.2
 
     @property
@@ -322,21 +344,26 @@ class Cone(Primitive):
     def area(self) -> float:
         return math.pi * self.radius * self.slant + math.pi * self.radius**2
 
-    def _intersect_local(self, o, d):
-        R, H = self.radius, self.height
-        k2 = (R / H) ** 2
-        w = H - o[:, 2]
+    def _side_quadric(self, o, d):
+        k2 = (self.radius / self.height) ** 2
+        w = self.height - o[:, 2]
         a = d[:, 0] ** 2 + d[:, 1] ** 2 - k2 * d[:, 2] ** 2
         b = o[:, 0] * d[:, 0] + o[:, 1] * d[:, 1] + k2 * w * d[:, 2]
         c = o[:, 0] ** 2 + o[:, 1] ** 2 - k2 * w * w
-        side = _side_hits(o, d, a, b, c, 0.0, H)
-        t, which = _smallest_positive(side[0], side[1], _disc_hit(o, d, 0.0, R))
-        p = _along(o, d, t)
+        return a, b, c
+
+    def _side_heights(self):
+        return 0.0, self.height
+
+    def _discs(self):
+        return ((0.0, self.radius),)
+
+    def _normals(self, p, which):
         rr = np.maximum(np.hypot(p[:, 0], p[:, 1]), 1e-12)
-        n = np.stack([p[:, 0] / rr, p[:, 1] / rr, np.full(len(p), R / H)], axis=1)
+        n = np.stack([p[:, 0] / rr, p[:, 1] / rr, np.full(len(p), self.radius / self.height)], axis=1)
         n /= np.linalg.norm(n, axis=1, keepdims=True)
         n[which == 2] = (0.0, 0.0, -1.0)
-        return t, n
+        return n
 
     def _sample_local(self, n, rng):
         R, H = self.radius, self.height
