@@ -132,8 +132,15 @@ def test_teacher_stability_marks_frames_whose_answer_noise_or_motion_changes():
     assert 0.1 <= st["noise"][1] <= 0.9, st["noise"]          # about half of the copies fall below
     assert list(st["motion"]) == [1.0, 1.0, 0.0]
     assert list(st["stable"]) == [True, False, False]
+    assert list(st["motion_views"]) == [1, 1, 1]
     summ = stability_summary(st)
     assert summ["stable_frames"] == 1 and summ["frames"] == 3 and summ["samples"] == STABILITY_SAMPLES
+    assert summ["frames_with_motion_views"] == 3
+    # a recording evaluated without motion views: only the noise is tested, and the summary says so
+    alone = RecordingCache(0, "rec", Path("."), views[:, :1].copy(), np.zeros((3, 1), np.float32), [{"index": i} for i in range(3)])
+    st0 = teacher_stability(teacher, [alone], [(0, 0), (0, 2)], top[:2], seed=0, device=torch.device("cpu"))
+    assert list(st0["motion_views"]) == [0, 0] and list(st0["stable"]) == [True, True]
+    assert stability_summary(st0)["frames_with_motion_views"] == 0
     counts = np.array([[0, 10], [10, 0], [0, 10]])         # a smoothed answer: 1, 0, 1
     out = summarize(counts, top, np.full(3, -1), sigma=0.25, stable=st["stable"])
     assert out["agreement"] == pytest.approx(2 / 3) and out["agreement_on_stable"] == 1.0 and out["stable_frames"] == 1
@@ -346,6 +353,9 @@ def test_benchmark_script_runs_on_a_tiny_model(tmp_path, capsys, monkeypatch):
         [r["ratio"] for rs in cert.values() for r in rs if r["axis"] == "tz"])))
     text = fb.table(rows)
     assert "ceiling" in text and "median radius / ceiling" in text and "held-out" in text
+    assert rec["teacher_stability"]["frames_with_motion_views"] == 0          # --eval recordings: no motion views
+    assert entry["heldout"]["teacher_stability"]["frames_with_motion_views"] == 2
+    assert "no motion views there: stable means under the noise alone" in text
     assert len(calls) == 2
     # --resume: nothing is tuned, evaluated or certified again; the same rows come back
     monkeypatch.setattr(fb, "evaluate_recording", lambda *a, **k: pytest.fail("evaluated again"))

@@ -312,12 +312,14 @@ def table(rows: dict[str, Any]) -> str:
         for name, r in e.get("recordings", {}).items():
             sets.append((Path(name).name, r["original"], r["tuned"], r.get("teacher_stability")))
         for name, b, a, st in sets:
-            stable = "-" if not st else f"{st['stable_frames']} of {st['frames']}"
+            stable = "-" if not st else f"{st['stable_frames']} of {st['frames']}" + ("" if st.get("frames_with_motion_views") else "*")
             lines.append(f"{s:>6s}  {name[:42]:42s} {f(b['agreement']):>12s} {f(a['agreement']):>12s} "
                          f"{f(b['p_a_quantiles'].get('q50')):>14s} {f(a['p_a_quantiles'].get('q50')):>14s}"
                          f" {stable:>14s} {f(a.get('agreement_on_stable')):>21s}")
         lines.append(f"{'':6s}  training {e['seconds']['training']:.0f} s, frames {e['seconds']['frames']:.0f} s, "
                      f"peak memory {e['memory']['peak_rss_mb']:.0f} MB")
+        if any(st and not st.get("frames_with_motion_views") for *_, st in sets):
+            lines.append(f"{'':6s}  * no motion views there: stable means under the noise alone")
     cert = [(s, e) for s, e in rows["sigmas"].items() if e.get("certified")]
     if cert:
         c = rows.get("certification", {})

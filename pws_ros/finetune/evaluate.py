@@ -56,19 +56,22 @@ def teacher_stability(teacher: Callable[[torch.Tensor], torch.Tensor], caches: l
                       sigma: float = STABILITY_SIGMA, samples: int = STABILITY_SAMPLES) -> dict[str, np.ndarray]:
     """Per held-out frame: the share of ``samples`` copies of the alpha = 0 frame with Gaussian noise of
     ``sigma`` on which the teacher keeps its clean answer (``noise``), the share of the cached motion
-    views on which it does (``motion``; 1 when there are none) and ``stable`` (noise share >=
-    STABILITY_SHARE and every motion view)."""
+    views on which it does (``motion``; 1 when there are none), how many motion views a frame has
+    (``motion_views``; 0 for a recording evaluated without them, where only the noise is tested) and
+    ``stable`` (noise share >= STABILITY_SHARE and every motion view)."""
     noise_keep = np.zeros(len(items))
     motion_keep = np.ones(len(items))
+    motion_views = np.zeros(len(items), dtype=np.int64)
     for row, (ci, k) in enumerate(items):
         c = caches[ci]
         x = torch.from_numpy(np.asarray(c.views[k]).transpose(0, 3, 1, 2).astype(np.float32) / 255.0).to(device)
         g = torch.Generator(device=device).manual_seed(derive(seed, _STABLE, ci, c.frames[k]["index"]))
         noisy = x[:1] + torch.randn((samples,) + tuple(x.shape[1:]), generator=g, device=device) * float(sigma)
         noise_keep[row] = float((teacher(noisy).argmax(dim=1).cpu().numpy() == teacher_top[row]).mean())
+        motion_views[row] = len(x) - 1
         if len(x) > 1:
             motion_keep[row] = float((teacher(x[1:]).argmax(dim=1).cpu().numpy() == teacher_top[row]).mean())
-    return {"noise": noise_keep, "motion": motion_keep,
+    return {"noise": noise_keep, "motion": motion_keep, "motion_views": motion_views,
             "stable": (noise_keep >= STABILITY_SHARE) & (motion_keep >= 1.0)}
 
 
@@ -80,6 +83,7 @@ def stability_summary(stab: dict[str, np.ndarray], *, sigma: float = STABILITY_S
             "stable_share": float(stable.mean()) if len(stable) else None,
             "noise_keep_mean": float(stab["noise"].mean()) if len(stable) else None,
             "motion_keep_mean": float(stab["motion"].mean()) if len(stable) else None,
+            "frames_with_motion_views": int((np.asarray(stab.get("motion_views", ())) > 0).sum()),
             "meaning": (f"the teacher's clean answer kept on >= {STABILITY_SHARE:.0%} of {samples} copies with noise "
                         f"sigma {sigma:g} and on every motion view; on the other frames that little noise or the requested "
                         "motion changes the teacher's answer, so no smoothed classifier can be expected to reproduce it")}
