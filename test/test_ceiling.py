@@ -71,6 +71,9 @@ def test_cli_json_and_bad_input():
     assert [r["axis"] for r in d["rows"]] == ["tz"] and d["rows"][0]["model"] is None and 0 < d["rows"][0]["ceiling_share"] <= 1
     p = subprocess.run(cmd + ["--no-model"], capture_output=True, text=True, timeout=300)
     assert p.returncode == 2 and "needs the classifier's input size" in p.stderr
+    p = subprocess.run(cmd[:-1] + ["--no-model", "--size", "90x160"], capture_output=True, text=True, timeout=300)
+    lines = [ln for ln in p.stderr.splitlines() if ln.startswith("pws ")]
+    assert p.returncode == 0 and lines and all(ln.startswith("pws ceiling: ") for ln in lines), p.stderr   # not "pws replay"
     p = subprocess.run(cmd + ["--size", "16x"], capture_output=True, text=True, timeout=60)
     assert p.returncode == 2 and "expected HxW" in p.stderr
 

@@ -76,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
         rows = []
         for bag in args.bags:
             opts = ReplayOptions(bag=Path(bag), config=cfg, write_output=False, topics=input_topics(args),
-                                 max_frames=args.max_frames, quiet=args.quiet, progress=False if args.quiet else None)
+                                 max_frames=args.max_frames, quiet=args.quiet, progress=False if args.quiet else None,
+                                 label="pws ceiling")
             try:
                 rows += ceiling(opts, model, input_size=args.size)[0]
             except PwsError as exc:

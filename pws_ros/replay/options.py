@@ -57,6 +57,7 @@ class ReplayOptions:
     progress: bool | None = None            # None: a bar on a terminal, else log lines; False: none (also --quiet)
     progress_interval_s: float = DEFAULT_INTERVAL_S   # seconds between progress log lines (not on a terminal)
     log: LogFn | None = None
+    label: str = "pws replay"               # the prefix of log lines and progress (the command that runs the replay)
     model: Any = None                       # a LoadedModel (tests); else config.model_path
     denoiser: Any = None
     cost_fn: Callable[[FrameRecord], float] | None = None   # realtime only: seconds a frame "takes" (tests)

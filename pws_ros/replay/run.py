@@ -57,7 +57,8 @@ class Replay:
             return
         if self.bar is not None:
             self.bar.clear()
-        prefix = {"info": "pws replay: ", "warn": "pws replay: warning: ", "error": "pws replay: error: "}.get(level, "")
+        label = self.opts.label
+        prefix = {"info": f"{label}: ", "warn": f"{label}: warning: ", "error": f"{label}: error: "}.get(level, "")
         print(prefix + message, file=sys.stderr, flush=True)
 
     def warn(self, message: str) -> None:
@@ -358,7 +359,7 @@ class Replay:
         mode = None if opts.progress is None else ("bar" if opts.progress else "off")
         if opts.quiet or (opts.log is not None and mode is None):
             mode = "off" if opts.quiet else "log"
-        self.bar = Progress(total, label="pws replay", mode=mode, interval_s=opts.progress_interval_s,
+        self.bar = Progress(total, label=opts.label, mode=mode, interval_s=opts.progress_interval_s,
                             emit=lambda line: self.log("info", line))
 
         copy: Callable[[BagMessage], None] | None = None
