@@ -404,3 +404,56 @@ def test_size_advice_for_models_much_larger_than_the_demo():
     assert len(big) == 2 and "448x448" in big[0] and "render_factor: 1" in big[0] and "batch_size 256" in big[1]
     assert size_advice(make_imaging("surfel", cam, (224, 224), border=0, render_factor=1), 32) == []
     assert size_advice(make_imaging("surfel", cam, (90, 160), border=0, render_factor=2), 256) == []
+
+
+def test_batch_size_advice_says_when_small_calls_are_faster_per_image():
+    """The rule of the start-up check, on made-up timings: advised at >= BATCH_CHECK_GAIN, with both
+    measurements; a configured size above the timed one is named as such."""
+    from pws_ros.bridge.engine import BATCH_CHECK_GAIN, batch_size_advice
+
+    text = batch_size_advice({4: 0.010, 32: 0.025}, 32)
+    assert "batch_size 4 classifies 2.5x as fast per image as batch_size 32" in text
+    assert "10.0 ms per image in calls of 4, 25.0 ms in calls of 32" in text and "--batch-size 4" in text
+    assert batch_size_advice({4: 0.010, 32: 0.010 * BATCH_CHECK_GAIN * 0.99}, 32) is None
+    assert batch_size_advice({4: 0.020, 32: 0.010}, 32) is None
+    assert "calls of 32 images (batch_size is 256, timed at 32)" in batch_size_advice({4: 0.01, 32: 0.03}, 256)
+
+
+class _SlowAtLargeBatches(torch.nn.Module):
+    """Two classes; a call of B images sleeps 0.4 ms x B^2 (per image 1.6 ms at B = 4, 12.8 ms at B = 32):
+    the shape of a large CPU model whose activations leave the cache at large batches."""
+
+    def __init__(self):
+        super().__init__()
+        self.calls: list[int] = []
+
+    def forward(self, x):
+        import time
+
+        self.calls.append(int(x.shape[0]))
+        time.sleep(0.0004 * x.shape[0] ** 2)
+        return torch.zeros(x.shape[0], 2)
+
+
+def test_batch_size_check_warns_once_on_a_cpu_for_a_large_input():
+    """check_batch_size times the configured batch against batch 4 once, on a large input only, and warns
+    with the measurement; a 160x90 input (the demo's) and a configured batch of 4 are not timed."""
+    from pws_ros.core.model import LoadedModel
+
+    def engine(batch_size, size):
+        module = _SlowAtLargeBatches()
+        model = LoadedModel(module, ["a", "b"], size, "slow.pt")
+        logs: list[tuple[str, str]] = []
+        cfg = config_from_params({"batch_size": batch_size, "sigma": 0.25})
+        return FrameCertifier(cfg, model=model, load=False, log=lambda lvl, m: logs.append((lvl, m))), module, logs
+
+    eng, module, logs = engine(32, (224, 224))
+    spent = eng.check_batch_size((224, 224))
+    warns = [m for lvl, m in logs if lvl == "warn"]
+    assert len(warns) == 1 and "batch_size 4 classifies" in warns[0] and "as fast per image as batch_size 32" in warns[0], logs
+    assert spent > 0 and set(module.calls) == {4, 32}
+    n_calls = len(module.calls)
+    assert eng.check_batch_size((224, 224)) == 0.0 and len(module.calls) == n_calls and len(logs) == 1   # once
+    for batch_size, size in ((32, (90, 160)), (4, (224, 224))):
+        eng, module, logs = engine(batch_size, size)
+        assert eng.check_batch_size(size) == 0.0 and module.calls == [] and logs == []

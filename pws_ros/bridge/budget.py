@@ -170,21 +170,19 @@ def size_axis(share_s: float, costs: CostModel, *, n0: int, n: int, num_anchors:
     return Sizes(*best, float(share_s), cost(best), True, True)
 
 
-def measure_inference(model: Any, shape: tuple[int, int], batch_size: int, sigma: float,
-                      denoiser: Any = None, repeats: int = 2) -> tuple[float, float]:
-    """(seconds of a call with 1 image, seconds of a call with ``batch_size`` images), through
-    :class:`~pws_ros.core.smoothing.SmoothedClassifier` (noise + denoiser + classifier); the first call
-    (lazy initialisation, JIT) is not counted, the mean of ``repeats`` is."""
+def _noisy_calls(model: Any, shape: tuple[int, int], batch_size: int, sigma: float, denoiser: Any, warm: int):
+    """A :class:`~pws_ros.core.smoothing.SmoothedClassifier` of ``model`` at ``batch_size``, a grey frame of
+    ``shape`` (H, W) and ``timed(k, repeats)``: the mean seconds of ``sample_counts(frame, k)``. A first
+    call of ``warm`` images is made here: lazy initialisation (JIT, kernels) is not a cost per call."""
     import torch
 
     from ..core.smoothing import SmoothedClassifier
 
-    h, w = int(shape[0]), int(shape[1])
     sc = SmoothedClassifier(model, sigma, batch_size=int(batch_size), seed=0, denoiser=denoiser)
-    frame = torch.full((1, h, w, 3), 0.5)
-    sc.sample_counts(frame, 1)   # warm: lazy initialisation is not a cost per call
+    frame = torch.full((1, int(shape[0]), int(shape[1]), 3), 0.5)
+    sc.sample_counts(frame, int(warm))
 
-    def timed(k: int) -> float:
+    def timed(k: int, repeats: int) -> float:
         total = 0.0
         for _ in range(max(1, repeats)):
             t0 = time.perf_counter()
@@ -192,8 +190,29 @@ def measure_inference(model: Any, shape: tuple[int, int], batch_size: int, sigma
             total += time.perf_counter() - t0
         return total / max(1, repeats)
 
-    return timed(1), timed(int(batch_size))
+    return timed
 
 
-__all__ = ["CostModel", "EMA_WEIGHT", "FRONTIER_POINTS", "MIN_N0", "MIN_POINTS", "SAFETY", "Sizes", "WARMUP_POINTS", "measure_inference",
+def measure_inference(model: Any, shape: tuple[int, int], batch_size: int, sigma: float,
+                      denoiser: Any = None, repeats: int = 2) -> tuple[float, float]:
+    """(seconds of a call with 1 image, seconds of a call with ``batch_size`` images), through
+    :class:`~pws_ros.core.smoothing.SmoothedClassifier` (noise + denoiser + classifier); the first call
+    (lazy initialisation, JIT) is not counted, the mean of ``repeats`` is."""
+    timed = _noisy_calls(model, shape, int(batch_size), sigma, denoiser, warm=1)
+    return timed(1, repeats), timed(int(batch_size), repeats)
+
+
+def measure_per_image(model: Any, shape: tuple[int, int], batch_sizes: tuple[int, ...], sigma: float,
+                      denoiser: Any = None, images: int = 32) -> dict[int, float]:
+    """Seconds per image of noisy classifier calls (as :func:`measure_inference` makes them) at each batch
+    size, over the same ``images`` images (at least one full call of each size; a first full call of each
+    size, which builds its kernels, is not counted)."""
+    out = {}
+    for bs in sorted({max(1, int(b)) for b in batch_sizes}):
+        k = max(bs, int(images))
+        out[bs] = _noisy_calls(model, shape, bs, sigma, denoiser, warm=bs)(k, 1) / k
+    return out
+
+
+__all__ = ["CostModel", "EMA_WEIGHT", "FRONTIER_POINTS", "MIN_N0", "MIN_POINTS", "SAFETY", "Sizes", "WARMUP_POINTS", "measure_inference", "measure_per_image",
            "size_axis"]

@@ -44,7 +44,7 @@ from .preview import render_previews
 from .scheme import PlanBundle, rendered_plan_from_parts
 from .selfaudit import audit_certificate
 from .assembly import AssembledFrame
-from .budget import WARMUP_POINTS, CostModel, Sizes, measure_inference, size_axis
+from .budget import WARMUP_POINTS, CostModel, Sizes, measure_inference, measure_per_image, size_axis
 
 LogFn = Callable[[str, str], None]   # (level: "info" | "warn" | "error", message)
 
@@ -118,6 +118,7 @@ class FrameCertifier:
         self._aspect_warned = False       # paper imaging: the aspect-ratio warning was given
         self._imaging_described = False   # surfel imaging: its description and memory estimate were logged
         self._sigma_checked: float | None = None
+        self._batch_checked = False       # the batch size was timed against a small one (check_batch_size)
         self._frames_seen = 0
         self.costs = CostModel()          # time_budget_s: what work costs on this machine (bridge.budget)
         self._geometry_warm = False
@@ -265,6 +266,35 @@ class FrameCertifier:
         cert.frame_alpha = float(self.config.alpha)
         return cert
 
+    def check_batch_size(self, shape: tuple[int, int]) -> float:
+        """Once, before the first certificate, on a CPU and for an input over twice the demo model's: time
+        noisy classifier calls of ``batch_size`` images (at most BATCH_CHECK_LARGEST) against calls of
+        BATCH_CHECK_SMALL and warn when the small ones are much faster per image (:func:`batch_size_advice`).
+        Advice only: the batch size also fixes how the noise is drawn, so it is never changed behind the
+        configuration's back. Returns the seconds it took (0 when it did not run)."""
+        c = self.config
+        if self._batch_checked:
+            return 0.0
+        self._batch_checked = True
+        h, w = int(shape[0]), int(shape[1])
+        if self.device != "cpu" or int(c.batch_size) <= BATCH_CHECK_SMALL or h * w <= 2 * DEMO_INPUT_PIXELS:
+            return 0.0
+        large = min(int(c.batch_size), BATCH_CHECK_LARGEST)
+        t0 = time.perf_counter()
+        try:
+            per_image = measure_per_image(self.model, (h, w), (BATCH_CHECK_SMALL, large), float(c.sigma), denoiser=self.denoiser)
+        except Exception as e:  # noqa: BLE001 - a check must not stop certification; the certificate reports real failures
+            self.log("info", f"batch size check skipped: {e}")
+            return time.perf_counter() - t0
+        text = batch_size_advice(per_image, int(c.batch_size))
+        spent = time.perf_counter() - t0
+        if text:
+            self.log("warn", f"{text} (checked in {spent:.1f} s at start)")
+        else:
+            self.log("info", "batch size check: " + ", ".join(f"{1000 * t:.1f} ms per image in calls of {b}" for b, t in per_image.items())
+                     + f"; batch_size {c.batch_size} kept ({spent:.1f} s)")
+        return spent
+
     def _check_sigma(self) -> None:
         """Warn (once per value) when the pixel noise sigma differs from the sigma the model's
         metadata says it was trained with: still sound, but p_A and the radii will likely suffer."""
@@ -371,6 +401,7 @@ class FrameCertifier:
         """Certify received frames and bounds; ``imaging`` (the bundle's) is recorded as the pipeline does."""
         from ..core.certify import certify_rendered
 
+        self.check_batch_size(tuple(rendered.frames.shape[1:3]))
         cert = certify_rendered(rendered, self.model, self.certify_config(rendered.plan.axis, stamp_ns), denoiser=self.denoiser)
         cert.imaging = str(rendered.plan.details.get("imaging", self.config.imaging))
         if imaging is not None:
@@ -411,6 +442,7 @@ class FrameCertifier:
 
         c = self.config
         intr = imaging.source or imaging.camera
+        self.check_batch_size(tuple(imaging.out_shape))
         if c.method == "cms":
             return self._guard(axis, lambda: self._stamp(certify(cloud, intr, self.model, axis, c.radius_for(axis), method="cms",
                                                                  config=self.certify_config(axis, stamp_ns),
@@ -462,13 +494,14 @@ class FrameCertifier:
         audit = self.config.audit_every > 0 and (self._frames_seen - 1) % self.config.audit_every == 0
         budget = float(self.config.time_budget_s)
         share = 0.0
+        checked = self.check_batch_size(tuple(imaging.out_shape)) if imaging is not None else 0.0   # once; not the budget's
         if imaging is not None and budget > 0 and self.config.method != "cms":
             try:
                 self._budget_ready(cloud, imaging, dense_cloud)
             except PwsError:
                 pass   # the axes report what fails (planning, rendering) in their certificates
             # every axis gets an even share of what is left of the frame's budget after the imaging (and warm-up)
-            share = max(0.0, budget - (time.perf_counter() - t0)) / max(1, len(self.config.axes))
+            share = max(0.0, budget - (time.perf_counter() - t0 - checked)) / max(1, len(self.config.axes))
         if imaging is not None:
             for axis in self.config.axes:
                 t1 = time.perf_counter()
@@ -514,6 +547,9 @@ class FrameCertifier:
         }
 
 
+BATCH_CHECK_SMALL = 4       # check_batch_size: the small batch timed against the configured one
+BATCH_CHECK_LARGEST = 32    # ... the configured one timed at most at this size (a larger call costs seconds and GB)
+BATCH_CHECK_GAIN = 1.25     # ... advised when the small batch is at least this much faster per image
 DEMO_RENDER_PIXELS = 320 * 180   # what the shipped defaults render (640x480 camera, 160x90 model, render_factor 2)
 DEMO_INPUT_PIXELS = 160 * 90
 
@@ -536,4 +572,18 @@ def size_advice(imaging: Any, batch_size: int) -> list[str]:
     return out
 
 
-__all__ = ["FrameCertifier", "FrameResult", "LogFn", "resolve_device_with_fallback", "size_advice"]
+def batch_size_advice(per_image: dict[int, float], batch_size: int) -> str | None:
+    """The warning of :meth:`FrameCertifier.check_batch_size`, or None: ``per_image`` maps a batch size to the
+    seconds per image measured in calls of that size."""
+    small, large = min(per_image), max(per_image)
+    if small >= large or per_image[small] <= 0 or per_image[large] < BATCH_CHECK_GAIN * per_image[small]:
+        return None
+    what = f"batch_size {batch_size}" if large == batch_size else f"calls of {large} images (batch_size is {batch_size}, timed at {large})"
+    return (f"batch_size {small} classifies {per_image[large] / per_image[small]:.1f}x as fast per image as {what} on this machine "
+            f"({1000 * per_image[small]:.1f} ms per image in calls of {small}, {1000 * per_image[large]:.1f} ms in calls of "
+            f"{large}): set batch_size: {small} (--batch-size {small}) for faster frames and less memory. The certificates stay "
+            f"as sound; the batch size also fixes how the noise is drawn, so their random draws differ")
+
+
+__all__ = ["BATCH_CHECK_GAIN", "BATCH_CHECK_LARGEST", "BATCH_CHECK_SMALL", "FrameCertifier", "FrameResult", "LogFn",
+           "batch_size_advice", "resolve_device_with_fallback", "size_advice"]
