@@ -170,7 +170,9 @@ def test_sizes_are_fixed_before_any_sample_is_drawn(make_model_file, small_camer
         assert s.reduced and s.n < 100_000 and cert.status != "error", cert.reason
         samples = [e[1] for e in events[start + 1:stop]]
         assert samples[0] == s.n0 and all(k <= s.num_anchors * s.n for k in samples[1:])   # the sized n0, then n
-        assert cert.n in (s.n, s.n * s.num_anchors) and cert.bounds["time_budget"]["n"] == s.n
+        K = len(cert.bounds["anchors"])
+        spread = s.num_anchors * s.n // K if cert.bounds["spread_estimation"] else s.n   # CertifyConfig.spread_estimation
+        assert cert.n in (spread, s.n * s.num_anchors) and cert.bounds["time_budget"]["n"] == s.n
 
 
 class SlowNet(torch.nn.Module):
@@ -219,3 +221,46 @@ def test_a_budget_below_the_least_work_is_an_error_not_an_overrun(small_camera):
     assert c.status == "error" and "time budget" in c.reason and c.radius == 0 and c.classifier_calls == 0
     assert c.bounds["time_budget"]["fits"] is False
     assert time.perf_counter() - t0 < 10.0   # the warm-up only (nothing is sampled: classifier_calls == 0 above)
+
+
+def test_a_reduced_budget_spends_its_estimation_samples_on_the_anchors_placed(small_camera, monkeypatch):
+    """Under a budget that shrinks the work, the num_anchors * n estimation samples it sized go to the K
+    anchors placed (n = num_anchors * n // K), in one call made after the placement; the sizes and the
+    Bonferroni K are those of the certificate."""
+    from pws_ros.core import smoothing
+    from conftest import MeanThresholdNet
+
+    model = LoadedModel(MeanThresholdNet(0.5), ["c0", "c1"], (24, 32), "m")
+    eng = FrameCertifier(config_from_params({"n0": 16, "n": 2000, "batch_size": 64, "axes": ["tz", "ry"], "time_budget_s": 4.0}),
+                         log=lambda *a: None, model=model)
+    eng.costs = costs(batch=1e-3, image=3e-4, point=0.02, fixed=0.1)   # a known (slowish) machine: the sizes shrink
+    eng._geometry_warm = True
+    calls = []
+    real = smoothing.SmoothedClassifier.sample_counts
+    monkeypatch.setattr(smoothing.SmoothedClassifier, "sample_counts",
+                        lambda self, frames, num, *a, **k: calls.append((len(frames), int(num))) or real(self, frames, num, *a, **k))
+    for cert in eng.process(box_scene(small_camera), small_camera, 7).certificates:
+        tb = cert.bounds["time_budget"]
+        K = len(cert.bounds["anchors"])
+        assert tb["reduced"] and cert.status != "error", cert.reason
+        assert cert.bounds["spread_estimation"] is True and cert.radius < eng.config.radius_for(cert.axis)   # short of the request
+        assert cert.n == tb["num_anchors"] * tb["n"] // K > tb["n"]
+        assert (K, cert.n) in calls and cert.classifier_calls == tb["n0"] + K * cert.n
+
+
+def test_spreading_is_off_by_default_and_where_the_anchors_reach(small_camera):
+    """The core's rule (CertifyConfig.spread_estimation): off, n per anchor; on, n_est = num_anchors * n // K
+    only where the placed anchors are predicted to fall short of the radius (a frame they cover pays n)."""
+    from conftest import MeanThresholdNet
+    from pws_ros.core.certify import CertifyConfig, certify
+
+    model = LoadedModel(MeanThresholdNet(0.5), ["c0", "c1"], (24, 32), "m")
+    cloud = box_scene(small_camera)
+    base = CertifyConfig(sigma=0.5, n0=16, n=100, num_anchors=5, batch_size=64, max_partitions=9)
+    off = certify(cloud, small_camera, model, "tz", 0.05, config=base)
+    on = certify(cloud, small_camera, model, "tz", 0.05, config=dataclasses.replace(base, spread_estimation=True))
+    assert off.n == 100 and off.bounds["spread_estimation"] is False
+    K = len(on.bounds["anchors"])
+    assert on.bounds["spread_estimation"] is True and on.n == 5 * 100 // K > 100 and on.classifier_calls == 16 + K * on.n
+    near = certify(cloud, small_camera, model, "tz", 1e-5, config=dataclasses.replace(base, spread_estimation=True))
+    assert near.radius == pytest.approx(1e-5) and near.bounds["spread_estimation"] is False and near.n == 100

@@ -16,7 +16,9 @@ the square root of the factor, n with the rest, n0 and the grid in proportion, n
 :data:`MIN_N0`), the largest that fits, found by bisection on the cost model. A frame that needs more
 work than fits gets a smaller radius, never more time; when even the least work (n0 = MIN_N0, one
 anchor, n = 1, 3 grid points) does not fit, the axis is not started (an ERROR certificate naming the
-budget). ``n0`` only selects the label and plans the anchors: fewer selection samples never make a
+budget). Under reduced sizes the engine also sets ``spread_estimation``: where fewer anchors are placed
+than sized and they fall short of the radius, the ``num_anchors * n`` estimation samples go to the
+anchors there are (:class:`~pws_ros.core.certify.CertifyConfig`), so the sized time is spent. ``n0`` only selects the label and plans the anchors: fewer selection samples never make a
 certificate wrong, only its anchors less well placed.
 
 Why the statistics stay valid: the sizes are a function of the budget and the machine's measured

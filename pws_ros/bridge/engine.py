@@ -127,6 +127,8 @@ class FrameCertifier:
             self.denoiser  # noqa: B018
             if config.method == "pws":
                 self.dense_cloud  # noqa: B018
+            if self.render_size is not None:
+                self.check_batch_size(self.render_size)   # at start, not in the first frame's time
             if config.time_budget_s > 0 and getattr(self._model, "input_size", None) is not None:
                 self.warm_up_inference(tuple(self._model.input_size))
 
@@ -208,7 +210,8 @@ class FrameCertifier:
             cfg = replace(cfg, alpha=self.config.alpha / max(1, len(self.config.axes)),
                           seed=derive_seed(self.config.seed, int(stamp_ns), axis))
         if sizes is not None and sizes.reduced:
-            cfg = replace(cfg, n0=int(sizes.n0), num_anchors=int(sizes.num_anchors), n=int(sizes.n), max_partitions=int(sizes.max_partitions),
+            # a budget that shrank the work: what it sized is spent (core.certify.CertifyConfig.spread_estimation)
+            cfg = replace(cfg, spread_estimation=True, n0=int(sizes.n0), num_anchors=int(sizes.num_anchors), n=int(sizes.n), max_partitions=int(sizes.max_partitions),
                           min_partitions=min(int(cfg.min_partitions), int(sizes.max_partitions)))
         return cfg
 
@@ -267,7 +270,8 @@ class FrameCertifier:
         return cert
 
     def check_batch_size(self, shape: tuple[int, int]) -> float:
-        """Once, before the first certificate, on a CPU and for an input over twice the demo model's: time
+        """Once (at start when the input size is known then, else before the first certificate), on a CPU and
+        for an input over twice the demo model's: time
         noisy classifier calls of ``batch_size`` images (at most BATCH_CHECK_LARGEST) against calls of
         BATCH_CHECK_SMALL and warn when the small ones are much faster per image (:func:`batch_size_advice`).
         Advice only: the batch size also fixes how the noise is drawn, so it is never changed behind the

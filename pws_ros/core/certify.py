@@ -76,6 +76,11 @@ class CertifyConfig:
     border: int = -1
     step_px: float = DEFAULT_STEP_PX
     render_factor: int = DEFAULT_RENDER_FACTOR
+    # anchors coverage: where the anchors placed are predicted to fall short of the radius, the estimation
+    # samples the axis was sized for (num_anchors * n) are spread over the K anchors placed (n_est =
+    # num_anchors * n // K), fixed before any estimation sample is drawn; off: n per anchor. A time budget
+    # that shrinks the sizes turns it on (they pay for num_anchors * n samples; bridge.budget)
+    spread_estimation: bool = False
 
     def validate(self) -> "CertifyConfig":
         require(math.isfinite(self.sigma) and self.sigma > 0, f"sigma must be positive, got {self.sigma}")
@@ -596,9 +601,14 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
         if len(finer.alphas) == len(plan.alphas):
             break
         plan, frames = finer, finer_frames
-    _, plan, frames, hulls, centre, est_idx, anchor_rows = best
+    predicted, plan, frames, hulls, centre, est_idx, anchor_rows = best
     N = plan.num_partitions
     K = len(est_idx)
+    spread = bool(config.spread_estimation) and 0 < K and predicted < plan.radius
+    if spread:
+        # a planning choice from the bounds and the selection samples only, made before any estimation draw:
+        # the samples the axis was sized for go to the anchors there are (a larger n, the same Bonferroni K)
+        n_est = max(n_est, int(config.num_anchors) * int(config.n) // K)
     # the K anchors share their n noise draws (common random numbers: each bound holds, Bonferroni needs no
     # independence between them; SmoothedClassifier.sample_counts)
     counts = sc.sample_counts(torch.as_tensor(frames[est_idx]), n_est, common_noise=True)
@@ -628,7 +638,7 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
         # flickering path can be long inside one ball); packing_anchor_bound is one (packing_bound)
         "path_length": float(steps.sum()), "path_anchor_bound": float(steps[half].sum() / (2 * max(float(R.max()), 1e-12))),
         "packing_anchor_bound": packing_bound(frames[(plan.alphas >= -reach) & (plan.alphas <= reach)], float(R.max())),
-        "frontier_splits": len(splits),
+        "frontier_splits": len(splits), "spread_estimation": spread,
     }
     if splits:
         # the grid the certificate rests on holds the refinement points (self-audits check their segments)
