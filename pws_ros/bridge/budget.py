@@ -18,8 +18,9 @@ work than fits gets a smaller radius, never more time; when even the least work 
 anchor, n = 1, 3 grid points) does not fit, the axis is not started (an ERROR certificate naming the
 budget). Under reduced sizes the engine also sets ``spread_estimation``: where fewer anchors are placed
 than sized and they fall short of the radius, the ``num_anchors * n`` estimation samples go to the
-anchors there are (:class:`~pws_ros.core.certify.CertifyConfig`), so the sized time is spent. ``n0`` only selects the label and plans the anchors: fewer selection samples never make a
-certificate wrong, only its anchors less well placed.
+anchors there are (:class:`~pws_ros.core.certify.CertifyConfig`), so the sized time is spent. ``n0``
+only selects the label and plans the anchors: fewer selection samples never make a certificate wrong,
+only its anchors less well placed.
 
 Why the statistics stay valid: the sizes are a function of the budget and the machine's measured
 timings only, fixed before the axis draws any sample, so they are independent of the axis' noise.
@@ -216,5 +217,5 @@ def measure_per_image(model: Any, shape: tuple[int, int], batch_sizes: tuple[int
     return out
 
 
-__all__ = ["CostModel", "EMA_WEIGHT", "FRONTIER_POINTS", "MIN_N0", "MIN_POINTS", "SAFETY", "Sizes", "WARMUP_POINTS", "measure_inference", "measure_per_image",
-           "size_axis"]
+__all__ = ["CostModel", "EMA_WEIGHT", "FRONTIER_POINTS", "MIN_N0", "MIN_POINTS", "SAFETY", "Sizes", "WARMUP_POINTS", "measure_inference",
+           "measure_per_image", "size_axis"]

@@ -211,8 +211,8 @@ class FrameCertifier:
                           seed=derive_seed(self.config.seed, int(stamp_ns), axis))
         if sizes is not None and sizes.reduced:
             # a budget that shrank the work: what it sized is spent (core.certify.CertifyConfig.spread_estimation)
-            cfg = replace(cfg, spread_estimation=True, n0=int(sizes.n0), num_anchors=int(sizes.num_anchors), n=int(sizes.n), max_partitions=int(sizes.max_partitions),
-                          min_partitions=min(int(cfg.min_partitions), int(sizes.max_partitions)))
+            cfg = replace(cfg, spread_estimation=True, n0=int(sizes.n0), num_anchors=int(sizes.num_anchors), n=int(sizes.n),
+                          max_partitions=int(sizes.max_partitions), min_partitions=min(int(cfg.min_partitions), int(sizes.max_partitions)))
         return cfg
 
     # ---- time budget (time_budget_s; pws_ros.bridge.budget) ----
@@ -271,9 +271,9 @@ class FrameCertifier:
 
     def check_batch_size(self, shape: tuple[int, int]) -> float:
         """Once (at start when the input size is known then, else before the first certificate), on a CPU and
-        for an input over twice the demo model's: time
-        noisy classifier calls of ``batch_size`` images (at most BATCH_CHECK_LARGEST) against calls of
-        BATCH_CHECK_SMALL and warn when the small ones are much faster per image (:func:`batch_size_advice`).
+        for an input over twice the demo model's: time noisy classifier calls of ``batch_size`` images (at
+        most BATCH_CHECK_LARGEST) against calls of BATCH_CHECK_SMALL and warn when the small ones are much
+        faster per image (:func:`batch_size_advice`).
         Advice only: the batch size also fixes how the noise is drawn, so it is never changed behind the
         configuration's back. Returns the seconds it took (0 when it did not run)."""
         c = self.config
