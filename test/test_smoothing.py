@@ -209,7 +209,7 @@ def test_samples_are_exactly_frame_plus_seeded_noise():
     start = 0
     for x in rec.inputs:
         b = x.shape[0]
-        noise = torch.randn((b, 3, 5, 4), generator=g)
+        noise = torch.stack([torch.randn((3, 5, 4), generator=g) for _ in range(b)])   # one image at a time
         expected = noise * sigma + chw[flat_index[start : start + b]]
         assert torch.equal(x, expected)
         start += b
@@ -229,10 +229,33 @@ def test_common_noise_samples_are_each_frame_plus_the_same_draws():
     chw = frames.permute(0, 3, 1, 2)
     inputs = iter(rec.inputs)
     for b in (3, 3, 1):                      # the noise of a batch is drawn once, then serves every frame
-        noise = torch.randn((b, 3, 5, 4), generator=g) * sigma
+        noise = torch.stack([torch.randn((3, 5, 4), generator=g) for _ in range(b)]) * sigma
         for k in range(3):
             assert torch.equal(next(inputs), noise + chw[k])
     assert next(inputs, None) is None
+
+
+@pytest.mark.parametrize("common_noise", [False, True])
+def test_counts_do_not_depend_on_the_batch_size(common_noise):
+    """The k-th noise image of a call is the same whatever batch_size splits the call into: every
+    classifier input, and so every count, is equal for batch sizes 1, 3, 7 and 64."""
+    frames = torch.rand(3, 5, 4, 3, generator=torch.Generator().manual_seed(2))
+    seen = []
+    for bs in (1, 3, 7, 64):
+        rec, model = _recording_model()
+        counts = SmoothedClassifier(model, 0.7, batch_size=bs, seed=9).sample_counts(frames, 10, common_noise=common_noise)
+        inputs = torch.cat(rec.inputs)
+        if common_noise:   # batches serve every frame in turn: order the inputs by frame
+            per = [x for k in range(3) for x in _frames_of(rec.inputs, k, 3)]
+            inputs = torch.cat(per)
+        seen.append((counts, inputs))
+    for counts, inputs in seen[1:]:
+        assert torch.equal(counts, seen[0][0]) and torch.equal(inputs, seen[0][1])
+
+
+def _frames_of(inputs: list, k: int, frames: int) -> list:
+    """The inputs for frame ``k`` of a common-noise call (each noise batch serves the frames in turn)."""
+    return [x for i, x in enumerate(inputs) if i % frames == k]
 
 
 def test_common_noise_keeps_each_frames_vote_frequency(threshold_model):

@@ -119,6 +119,7 @@ class FrameCertifier:
         self._imaging_described = False   # surfel imaging: its description and memory estimate were logged
         self._sigma_checked: float | None = None
         self._batch_checked = False       # the batch size was timed against a small one (check_batch_size)
+        self.batch_size = int(config.batch_size)   # images per classifier call: the configured, or a faster smaller one
         self._frames_seen = 0
         self.costs = CostModel()          # time_budget_s: what work costs on this machine (bridge.budget)
         self._geometry_warm = False
@@ -193,7 +194,7 @@ class FrameCertifier:
             self.log("info", f"{im.describe()}; memory per axis: frames and bounds of at most {fit} segments x "
                              f"{segment_bytes(im) / 2**20:.2f} MiB = {fit * segment_bytes(im) / 2**20:.0f} MiB "
                              f"(max_memory_mb {c.max_memory_mb:g}), the renderer streams in chunks")
-            for text in size_advice(im, int(c.batch_size)):
+            for text in size_advice(im, self.batch_size):
                 self.log("warn", text)
         return im
 
@@ -205,7 +206,7 @@ class FrameCertifier:
         from ..core.smoothing import derive_seed
 
         self._check_sigma()
-        cfg = replace(self.config.certify_config(), device=self.device)
+        cfg = replace(self.config.certify_config(), device=self.device, batch_size=self.batch_size)
         if axis is not None:
             cfg = replace(cfg, alpha=self.config.alpha / max(1, len(self.config.axes)),
                           seed=derive_seed(self.config.seed, int(stamp_ns), axis))
@@ -219,9 +220,9 @@ class FrameCertifier:
     def warm_up_inference(self, shape: tuple[int, int]) -> None:
         """Measure a classifier call of 1 image and of ``batch_size`` images at input ``shape`` (H, W)."""
         c = self.config
-        t_one, t_full = measure_inference(self.model, shape, int(c.batch_size), float(c.sigma), denoiser=self.denoiser)
-        self.costs.set_inference(t_one, t_full, int(c.batch_size))
-        self.log("info", f"time budget {c.time_budget_s:g} s per frame: a classifier call of {c.batch_size} images takes "
+        t_one, t_full = measure_inference(self.model, shape, self.batch_size, float(c.sigma), denoiser=self.denoiser)
+        self.costs.set_inference(t_one, t_full, self.batch_size)
+        self.log("info", f"time budget {c.time_budget_s:g} s per frame: a classifier call of {self.batch_size} images takes "
                          f"{1000 * t_full:.1f} ms here ({1000 * t_one:.1f} ms for 1)")
 
     def warm_up_geometry(self, cloud: Cloud, imaging: Any, axis: str, dense_cloud: Cloud | None = None) -> None:
@@ -262,7 +263,7 @@ class FrameCertifier:
         """The sizes of one axis for ``share_s`` seconds from the current cost model (:func:`.budget.size_axis`)."""
         c = self.config
         return size_axis(share_s, self.costs, n0=int(c.n0), n=int(c.n), num_anchors=int(c.num_anchors),
-                         max_partitions=int(c.max_partitions), batch_size=int(c.batch_size),
+                         max_partitions=int(c.max_partitions), batch_size=self.batch_size,
                          per_point=c.coverage != "anchors")
 
     def _stamp(self, cert: Certificate) -> Certificate:
@@ -272,31 +273,36 @@ class FrameCertifier:
     def check_batch_size(self, shape: tuple[int, int]) -> float:
         """Once (at start when the input size is known then, else before the first certificate), on a CPU and
         for an input over twice the demo model's: time noisy classifier calls of ``batch_size`` images (at
-        most BATCH_CHECK_LARGEST) against calls of BATCH_CHECK_SMALL and warn when the small ones are much
-        faster per image (:func:`batch_size_advice`).
-        Advice only: the batch size also fixes how the noise is drawn, so it is never changed behind the
-        configuration's back. Returns the seconds it took (0 when it did not run)."""
+        most BATCH_CHECK_LARGEST) against calls of BATCH_CHECK_SMALL, and use the small ones from then on when
+        they are at least BATCH_CHECK_GAIN as fast per image (:func:`faster_batch`): a large model on a CPU
+        often is, its activations leaving the cache. The certificates do not depend on the batch size (the
+        noise is drawn one image at a time, :class:`~pws_ros.core.smoothing.SmoothedClassifier`), and a
+        smaller call only needs less memory. Returns the seconds it took (0 when it did not run)."""
         c = self.config
         if self._batch_checked:
             return 0.0
         self._batch_checked = True
         h, w = int(shape[0]), int(shape[1])
-        if self.device != "cpu" or int(c.batch_size) <= BATCH_CHECK_SMALL or h * w <= 2 * DEMO_INPUT_PIXELS:
+        if self.device != "cpu" or self.batch_size <= BATCH_CHECK_SMALL or h * w <= 2 * DEMO_INPUT_PIXELS:
             return 0.0
-        large = min(int(c.batch_size), BATCH_CHECK_LARGEST)
+        large = min(self.batch_size, BATCH_CHECK_LARGEST)
         t0 = time.perf_counter()
         try:
             per_image = measure_per_image(self.model, (h, w), (BATCH_CHECK_SMALL, large), float(c.sigma), denoiser=self.denoiser)
         except Exception as e:  # noqa: BLE001 - a check must not stop certification; the certificate reports real failures
             self.log("info", f"batch size check skipped: {e}")
             return time.perf_counter() - t0
-        text = batch_size_advice(per_image, int(c.batch_size))
         spent = time.perf_counter() - t0
-        if text:
-            self.log("warn", f"{text} (checked in {spent:.1f} s at start)")
+        timed = ", ".join(f"{1000 * t:.1f} ms per image in calls of {b}" for b, t in per_image.items())
+        small = faster_batch(per_image)
+        if small is None:
+            self.log("info", f"batch size check: {timed}; batch_size {self.batch_size} kept ({spent:.1f} s)")
         else:
-            self.log("info", "batch size check: " + ", ".join(f"{1000 * t:.1f} ms per image in calls of {b}" for b, t in per_image.items())
-                     + f"; batch_size {c.batch_size} kept ({spent:.1f} s)")
+            self.log("info", f"batch size check: {timed}: classifier calls of {small} images from now on, "
+                             f"{per_image[large] / per_image[small]:.1f}x as fast per image as {large} (configured batch_size "
+                             f"{c.batch_size}; the certificates do not depend on it; batch_size: {small} skips this check; "
+                             f"{spent:.1f} s)")
+            self.batch_size = small
         return spent
 
     def _check_sigma(self) -> None:
@@ -525,7 +531,7 @@ class FrameCertifier:
                     if sizes is not None:
                         spent = time.perf_counter() - t1
                         if sizes.fits:
-                            self.costs.observe(cert, spent, int(self.config.batch_size))
+                            self.costs.observe(cert, spent, self.batch_size)
                         self._record_budget(cert, sizes, budget, spent)
                     if audit and cert.status != "error" and axis in plans:
                         audit_certificate(cert, self.source_cloud(cloud, dense_cloud), imaging, plans[axis], device=self.device,
@@ -576,18 +582,14 @@ def size_advice(imaging: Any, batch_size: int) -> list[str]:
     return out
 
 
-def batch_size_advice(per_image: dict[int, float], batch_size: int) -> str | None:
-    """The warning of :meth:`FrameCertifier.check_batch_size`, or None: ``per_image`` maps a batch size to the
-    seconds per image measured in calls of that size."""
+def faster_batch(per_image: dict[int, float]) -> int | None:
+    """The smallest batch size timed when it is at least BATCH_CHECK_GAIN as fast per image as the largest
+    (``per_image``: seconds per image in calls of each size), else None."""
     small, large = min(per_image), max(per_image)
     if small >= large or per_image[small] <= 0 or per_image[large] < BATCH_CHECK_GAIN * per_image[small]:
         return None
-    what = f"batch_size {batch_size}" if large == batch_size else f"calls of {large} images (batch_size is {batch_size}, timed at {large})"
-    return (f"batch_size {small} classifies {per_image[large] / per_image[small]:.1f}x as fast per image as {what} on this machine "
-            f"({1000 * per_image[small]:.1f} ms per image in calls of {small}, {1000 * per_image[large]:.1f} ms in calls of "
-            f"{large}): set batch_size: {small} (--batch-size {small}) for faster frames and less memory. The certificates stay "
-            f"as sound; the batch size also fixes how the noise is drawn, so their random draws differ")
+    return small
 
 
 __all__ = ["BATCH_CHECK_GAIN", "BATCH_CHECK_LARGEST", "BATCH_CHECK_SMALL", "FrameCertifier", "FrameResult", "LogFn",
-           "batch_size_advice", "resolve_device_with_fallback", "size_advice"]
+           "faster_batch", "resolve_device_with_fallback", "size_advice"]

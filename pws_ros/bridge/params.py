@@ -130,8 +130,9 @@ PARAMS: tuple[ParamSpec, ...] = (
               "together) is wrong; split evenly over the axes, then over every bound each uses (Bonferroni)", range=(1e-12, 0.5), nodes=_ANCHOR),
     ParamSpec("seed", 0, "random seed; each frame and axis draws from its own stream derived from (seed, stamp, axis): "
               "deterministic for equal inputs, independent across frames and axes", range=(0, 2**31 - 1), nodes=_CERT),
-    ParamSpec("batch_size", 256, "images per classifier call (fixes how the noise is drawn; on a CPU a large model may be "
-              "faster per image in small calls: the certifier times 4 against it once and warns when 4 is faster)",
+    ParamSpec("batch_size", 256, "images per classifier call, the most (the certificates do not depend on it; on a CPU a "
+              "large model is often faster per image in small calls: the certifier times 4 against it once at start and "
+              "uses 4 when that is at least 1.25x as fast)",
               range=(1, 1_000_000), nodes=_CERT),
     ParamSpec("num_anchors", 24, "anchor frames for coverage=anchors (surfel imaging: the most anchors, i.e. a budget of "
               "n0 + num_anchors * n classifier calls per axis; a frame needing more gets a smaller radius)", range=(1, 100_000), nodes=_ANCHOR),

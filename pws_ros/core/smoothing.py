@@ -160,8 +160,8 @@ def _sync(device: torch.device) -> None:
 class SmoothedClassifier:
     """Counts the base classifier's votes under Gaussian pixel noise.
 
-    One ``torch.Generator`` on the model's device, seeded with ``seed``: the same sequence of calls
-    (with the same ``batch_size``) gives identical counts. ``denoiser`` (optional, ``(B,3,H,W) ->
+    One ``torch.Generator`` on the model's device, seeded with ``seed``: the same sequence of calls gives
+    identical counts, whatever the ``batch_size`` (noise images are drawn one at a time, in sample order). ``denoiser`` (optional, ``(B,3,H,W) ->
     (B,3,H,W)``) is applied after the noise and before the classifier (denoised smoothing).
     ``calls`` counts images classified; ``inference_seconds`` the time spent in noise, denoiser
     and classifier (device-synchronised).
@@ -241,7 +241,7 @@ class SmoothedClassifier:
                 f0, f1 = start // num, (stop - 1) // num
                 sub = chw[f0 : f1 + 1].to(self.device)
                 local = torch.arange(start, stop, device=self.device) // num - f0
-                noise = buffer[: stop - start].normal_(generator=self.generator)
+                noise = self._draw(buffer[: stop - start])
                 if f0 == f1:
                     batch = noise.mul_(self.sigma).add_(sub[0])
                 else:
@@ -260,9 +260,17 @@ class SmoothedClassifier:
         return counts.view(B, -1).cpu()
 
     def _noise_buffer(self, n: int, H: int, W: int) -> torch.Tensor:
-        """Room for ``n`` noise images, refilled in place batch after batch (``normal_`` draws exactly what
-        ``torch.randn`` of that shape draws from the generator, without a new allocation per batch)."""
+        """Room for ``n`` noise images, refilled in place batch after batch (no new allocation per batch)."""
         return torch.empty((n, 3, H, W), device=self.device, dtype=torch.float32)
+
+    def _draw(self, noise: torch.Tensor) -> torch.Tensor:
+        """Fill ``noise`` (b, 3, H, W) with N(0, 1), one image at a time: the k-th noise image of a call is
+        the same whatever ``batch_size`` splits the call into, so the counts do not depend on the batch size.
+        (A whole batch drawn at once depends on the batch's size: on a CPU torch draws normals 16 values at a
+        time, so it equals the image-by-image draw only where 3·H·W is a multiple of 16; on a GPU not at all.)"""
+        for image in noise:
+            image.normal_(generator=self.generator)
+        return noise
 
     def _zero_counts(self, B: int) -> torch.Tensor:
         """``(B, C)`` vote counters; after the first classifier call (a model may learn C from its output)."""
@@ -281,7 +289,7 @@ class SmoothedClassifier:
             out = torch.empty_like(buffer)
             for start in range(0, num, self.batch_size):
                 b = min(self.batch_size, num - start)
-                noise = buffer[:b].normal_(generator=self.generator).mul_(self.sigma)
+                noise = self._draw(buffer[:b]).mul_(self.sigma)
                 x = out[:b]
                 for k in range(B):
                     torch.add(noise, chw[k].to(self.device), out=x)
