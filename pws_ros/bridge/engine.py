@@ -271,38 +271,14 @@ class FrameCertifier:
         return cert
 
     def check_batch_size(self, shape: tuple[int, int]) -> float:
-        """Once (at start when the input size is known then, else before the first certificate), on a CPU and
-        for an input over twice the demo model's: time noisy classifier calls of ``batch_size`` images (at
-        most BATCH_CHECK_LARGEST) against calls of BATCH_CHECK_SMALL, and use the small ones from then on when
-        they are at least BATCH_CHECK_GAIN as fast per image (:func:`faster_batch`): a large model on a CPU
-        often is, its activations leaving the cache. The certificates do not depend on the batch size (the
-        noise is drawn one image at a time, :class:`~pws_ros.core.smoothing.SmoothedClassifier`), and a
-        smaller call only needs less memory. Returns the seconds it took (0 when it did not run)."""
-        c = self.config
+        """Once (at start when the input size is known then, else before the first certificate): the batch
+        size of this engine's classifier calls on ``shape`` inputs, from :func:`choose_batch_size`. Returns
+        the seconds it took (0 when nothing was timed)."""
         if self._batch_checked:
             return 0.0
         self._batch_checked = True
-        h, w = int(shape[0]), int(shape[1])
-        if self.device != "cpu" or self.batch_size <= BATCH_CHECK_SMALL or h * w <= 2 * DEMO_INPUT_PIXELS:
-            return 0.0
-        large = min(self.batch_size, BATCH_CHECK_LARGEST)
-        t0 = time.perf_counter()
-        try:
-            per_image = measure_per_image(self.model, (h, w), (BATCH_CHECK_SMALL, large), float(c.sigma), denoiser=self.denoiser)
-        except Exception as e:  # noqa: BLE001 - a check must not stop certification; the certificate reports real failures
-            self.log("info", f"batch size check skipped: {e}")
-            return time.perf_counter() - t0
-        spent = time.perf_counter() - t0
-        timed = ", ".join(f"{1000 * t:.1f} ms per image in calls of {b}" for b, t in per_image.items())
-        small = faster_batch(per_image)
-        if small is None:
-            self.log("info", f"batch size check: {timed}; batch_size {self.batch_size} kept ({spent:.1f} s)")
-        else:
-            self.log("info", f"batch size check: {timed}: classifier calls of {small} images from now on, "
-                             f"{per_image[large] / per_image[small]:.1f}x as fast per image as {large} (configured batch_size "
-                             f"{c.batch_size}; the certificates do not depend on it; batch_size: {small} skips this check; "
-                             f"{spent:.1f} s)")
-            self.batch_size = small
+        self.batch_size, spent = choose_batch_size(self.model, shape, self.batch_size, float(self.config.sigma), device=self.device,
+                                                   denoiser=self.denoiser, log=self.log)
         return spent
 
     def _check_sigma(self) -> None:
@@ -582,6 +558,38 @@ def size_advice(imaging: Any, batch_size: int) -> list[str]:
     return out
 
 
+def choose_batch_size(model: Any, shape: tuple[int, int], batch_size: int, sigma: float, *, device: str,
+                      denoiser: Any = None, log: LogFn | None = None) -> tuple[int, float]:
+    """(batch size, seconds spent): on a CPU and for an input over twice the demo model's, noisy classifier
+    calls of ``batch_size`` images (at most BATCH_CHECK_LARGEST) are timed against calls of BATCH_CHECK_SMALL,
+    and the small ones are chosen when they are at least BATCH_CHECK_GAIN as fast per image
+    (:func:`faster_batch`): a large model on a CPU often is, its activations leaving the cache. Else
+    ``batch_size`` as it is, untimed. The certificates do not depend on the batch size (the noise is drawn
+    one image at a time, :class:`~pws_ros.core.smoothing.SmoothedClassifier`); a smaller call only needs
+    less memory. ``log(level, message)`` hears what was measured and chosen."""
+    h, w = int(shape[0]), int(shape[1])
+    if str(device) != "cpu" or int(batch_size) <= BATCH_CHECK_SMALL or h * w <= 2 * DEMO_INPUT_PIXELS:
+        return int(batch_size), 0.0
+    say = log or (lambda level, message: None)
+    large = min(int(batch_size), BATCH_CHECK_LARGEST)
+    t0 = time.perf_counter()
+    try:
+        per_image = measure_per_image(model, (h, w), (BATCH_CHECK_SMALL, large), float(sigma), denoiser=denoiser)
+    except Exception as e:  # noqa: BLE001 - a check must not stop certification; the certificate reports real failures
+        say("info", f"batch size check skipped: {e}")
+        return int(batch_size), time.perf_counter() - t0
+    spent = time.perf_counter() - t0
+    timed = ", ".join(f"{1000 * t:.1f} ms per image in calls of {b}" for b, t in per_image.items())
+    small = faster_batch(per_image)
+    if small is None:
+        say("info", f"batch size check: {timed}; batch_size {batch_size} kept ({spent:.1f} s)")
+        return int(batch_size), spent
+    say("info", f"batch size check: {timed}: classifier calls of {small} images from now on, "
+                f"{per_image[large] / per_image[small]:.1f}x as fast per image as {large} (configured batch_size {batch_size}; "
+                f"the certificates do not depend on it; batch_size: {small} skips this check; {spent:.1f} s)")
+    return small, spent
+
+
 def faster_batch(per_image: dict[int, float]) -> int | None:
     """The smallest batch size timed when it is at least BATCH_CHECK_GAIN as fast per image as the largest
     (``per_image``: seconds per image in calls of each size), else None."""
@@ -592,4 +600,4 @@ def faster_batch(per_image: dict[int, float]) -> int | None:
 
 
 __all__ = ["BATCH_CHECK_GAIN", "BATCH_CHECK_LARGEST", "BATCH_CHECK_SMALL", "FrameCertifier", "FrameResult", "LogFn",
-           "faster_batch", "resolve_device_with_fallback", "size_advice"]
+           "choose_batch_size", "faster_batch", "resolve_device_with_fallback", "size_advice"]

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 
 from ..core.certify import METHODS, certify
 from ..core.model import load_denoiser, load_model
@@ -36,6 +37,13 @@ def run(args) -> int:
         print(f"pws certify: rendering at the model's input size {w}x{h} (camera is {intr.width}x{intr.height})", file=sys.stderr)
         intr = intr.scaled(w, h)
     denoiser = load_denoiser(args.denoiser, device=device) if args.denoiser else None
+    if args.method != "cms":   # the size of the frames the classifier gets: the model's, else the camera's
+        from ..bridge.engine import choose_batch_size
+
+        shape = tuple(model.input_size) if model.input_size is not None else intr.shape
+        batch_size, _ = choose_batch_size(model, shape, config.batch_size, config.sigma, device=device, denoiser=denoiser,
+                                          log=None if args.quiet else lambda level, text: print(f"pws certify: {text}", file=sys.stderr))
+        config = replace(config, batch_size=batch_size)
     bar = Progress(label=f"pws certify {args.method} {args.axis}", unit="images", mode="off" if args.quiet else None)
     try:
         cert = certify(cloud, intr, model, args.axis, args.radius, args.method, config, denoiser=denoiser, progress=bar.update_to)
