@@ -428,7 +428,6 @@ class FrameCertifier:
 
         c = self.config
         intr = imaging.source or imaging.camera
-        self.check_batch_size(tuple(imaging.out_shape))
         if c.method == "cms":
             return self._guard(axis, lambda: self._stamp(certify(cloud, intr, self.model, axis, c.radius_for(axis), method="cms",
                                                                  config=self.certify_config(axis, stamp_ns),
@@ -535,7 +534,7 @@ class FrameCertifier:
 
 BATCH_CHECK_SMALL = 4       # check_batch_size: the small batch timed against the configured one
 BATCH_CHECK_LARGEST = 32    # ... the configured one timed at most at this size (a larger call costs seconds and GB)
-BATCH_CHECK_GAIN = 1.25     # ... advised when the small batch is at least this much faster per image
+BATCH_CHECK_GAIN = 1.25     # ... used when the small batch is at least this much faster per image
 DEMO_RENDER_PIXELS = 320 * 180   # what the shipped defaults render (640x480 camera, 160x90 model, render_factor 2)
 DEMO_INPUT_PIXELS = 160 * 90
 

@@ -161,8 +161,9 @@ class SmoothedClassifier:
     """Counts the base classifier's votes under Gaussian pixel noise.
 
     One ``torch.Generator`` on the model's device, seeded with ``seed``: the same sequence of calls gives
-    identical counts, whatever the ``batch_size`` (noise images are drawn one at a time, in sample order). ``denoiser`` (optional, ``(B,3,H,W) ->
-    (B,3,H,W)``) is applied after the noise and before the classifier (denoised smoothing).
+    identical counts, whatever the ``batch_size`` (noise images are drawn one at a time, in sample order).
+    ``denoiser`` (optional, ``(B,3,H,W) -> (B,3,H,W)``) is applied after the noise and before the
+    classifier (denoised smoothing).
     ``calls`` counts images classified; ``inference_seconds`` the time spent in noise, denoiser
     and classifier (device-synchronised).
     """

@@ -35,7 +35,8 @@ def replay_summary(rp: Any, inputs: InputTopics, out: Path | None, dropped: int,
                    # the risk of each frame's whole statement (all axes), and what each axis spends of it
                    "frame_alpha": cfg.alpha, "alpha_per_axis": cfg.alpha / max(1, len(axes)),
                    "num_anchors": cfg.num_anchors, "seed": cfg.seed, "device": rp.engine.device,
-                   "batch_size": cfg.batch_size, "batch_size_used": getattr(rp.engine, "batch_size", cfg.batch_size), "model_path": cfg.model_path, "realtime": rp.opts.realtime,
+                   "batch_size": cfg.batch_size, "batch_size_used": getattr(rp.engine, "batch_size", cfg.batch_size),
+                   "model_path": cfg.model_path, "realtime": rp.opts.realtime,
                    "dense_cloud": cfg.dense_cloud_path if cfg.method == "pws" else None}
     s["warnings"] = list(rp.warnings)
     return s
