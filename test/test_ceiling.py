@@ -95,3 +95,20 @@ def test_cli_several_recordings_one_table(tmp_path):
     assert "tz: median ceiling" in p.stdout and p.stdout.count("median ceiling") == 1   # one median over both
     p = subprocess.run(cmd[:5] + [str(tmp_path / "missing")] + cmd[6:], capture_output=True, text=True, timeout=300)
     assert p.returncode == 2 and "missing" in p.stderr
+
+
+def test_cli_puts_the_whole_frame_beside_a_working_volume():
+    """With a working volume the table has the whole frame's ceiling beside the volume's. A volume that holds
+    every point of the frame draws the same images, so both ceilings are equal; without one there is no column."""
+    cmd = [sys.executable, "-m", "pws_ros.cli", "ceiling", str(DEMO), "--max-frames", "1", "--axes", "tz", "--radius", "tz=2mm",
+           "--n0", "8", "--n", "32", "--anchors", "4", "--quiet", "--no-model", "--size", "90x160"]
+    p = subprocess.run(cmd + ["--working-volume", "0,1000", "--json"], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    (row,) = json.loads(p.stdout)["rows"]
+    assert row["whole"] == row["ceiling"] > 0 and row["whole_share"] == row["ceiling_share"]
+    p = subprocess.run(cmd + ["--working-volume", "0,1000"], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0 and "whole frame" in p.stdout.splitlines()[1] and "on the whole frame)" in p.stdout, p.stdout
+    p = subprocess.run(cmd + ["--json"], capture_output=True, text=True, timeout=300)
+    assert json.loads(p.stdout)["rows"][0]["whole"] is None
+    p = subprocess.run(cmd + ["--working-volume", "2,1"], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2 and "must be larger than near" in p.stderr, p.stderr

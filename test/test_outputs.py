@@ -23,7 +23,8 @@ CAM = CameraIntrinsics(32, 24, 30.0, 30.0, 15.5, 11.5, "cam")
 # the documented key schema (docs/ros2.md), written out here independently of msgbuild's tuples
 KEYS = ["label", "class_name", "certified", "radius", "unit", "p_a_lower", "sigma", "n", "alpha", "frame_alpha",
         "num_partitions", "classifier_calls", "latency_ms", "compute_ms", "status", "requested_radius", "method",
-        "coverage", "n0", "delta_alpha", "num_bounds", "frames_rendered", "imaging", "filled_points", "reason", "node"]
+        "coverage", "n0", "delta_alpha", "num_bounds", "frames_rendered", "imaging", "filled_points", "working_volume",
+        "reason", "node"]
 # the documented order (docs/ros2.md, Outputs): the certification last
 PIPELINE_TOPICS = ["cloud", "cloud/camera_info", "plan/poses/tx", "plan/poses/tz", "rendered/preview", "rendered/preview",
                    "certification/markers", "certification"]

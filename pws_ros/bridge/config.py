@@ -42,6 +42,22 @@ class _ConfigMethods:
         return float(getattr(self, f"radius_{axis}"))
 
     @property
+    def working_volume(self):
+        """The :class:`~pws_ros.core.volume.WorkingVolume` of the ``working_volume.*`` parameters (None: far = 0,
+        every point is drawn); PwsError naming a bad combination."""
+        from ..core.volume import volume_from_limits
+
+        return volume_from_limits(self.working_volume_near, self.working_volume_far, self.working_volume_x_min,
+                                  self.working_volume_x_max, self.working_volume_y_min, self.working_volume_y_max)
+
+    @property
+    def background_value(self) -> float:
+        """``background`` with -1 (automatic) resolved: 0.5 with a working volume, else 0.0."""
+        from ..core.volume import resolve_background
+
+        return resolve_background(self.background, self.working_volume)
+
+    @property
     def radii(self) -> dict[str, float]:
         return {a: self.radius_for(a) for a in self.axes}
 
@@ -63,7 +79,8 @@ class _ConfigMethods:
         from ..core.certify import CertifyConfig
 
         same = {f.name: getattr(self, f.name) for f in fields(CertifyConfig) if f.name in _ATTRS}
-        same.update(delta=self.delta if self.delta > 0 else None, cms_sigma=self.cms_sigma if self.cms_sigma > 0 else None)
+        same.update(delta=self.delta if self.delta > 0 else None, cms_sigma=self.cms_sigma if self.cms_sigma > 0 else None,
+                    working_volume=self.working_volume, background=self.background_value)
         return CertifyConfig(**same)
 
 
@@ -79,13 +96,15 @@ PwsConfig.__doc__ = ("Validated parameter values: one field per parameter of :da
 
 def check_consistency(cfg: PwsConfig) -> None:
     """Cross-parameter rules (PwsError): pws needs a dense cloud; render size given in full; a worker index
-    below the number of workers."""
+    below the number of workers; a working volume of positive size, with surfel imaging."""
     require(not (cfg.method == "pws" and not cfg.dense_cloud_path),
             "method pws needs the entire scene cloud: set dense_cloud_path (or use pws_of / pws_l with the one-frame cloud)")
     require((cfg.render_width == 0) == (cfg.render_height == 0),
             f"render_width and render_height must both be 0 or both set, got {cfg.render_width}x{cfg.render_height}")
     require(cfg.worker_index < cfg.num_workers,
             f"worker_index {cfg.worker_index} must be below num_workers {cfg.num_workers} (workers are numbered from 0)")
+    require(cfg.working_volume is None or cfg.imaging == "surfel",
+            "working_volume needs imaging: surfel (imaging: paper draws every point): set working_volume.far to 0 or use surfel")
     require(not (cfg.method == "pws" and cfg.imaging == "surfel"),
             "method pws plans on the entire scene cloud, which has no depth pixels to make surfels of: set imaging: paper "
             "(or use pws_of / pws_l with the one-frame cloud)")

@@ -31,7 +31,7 @@ DIAGNOSTIC_KEYS: tuple[str, ...] = (
 )
 DIAGNOSTIC_EXTRA_KEYS: tuple[str, ...] = (
     "status", "requested_radius", "method", "coverage", "n0", "delta_alpha", "num_bounds",
-    "frames_rendered", "imaging", "filled_points", "reason", "node",
+    "frames_rendered", "imaging", "filled_points", "working_volume", "reason", "node",
 )
 STATUS_NAME_PREFIX = "pws/"
 
@@ -117,6 +117,7 @@ def certificate_values(cert: Certificate, *, latency_ms: float, compute_ms: floa
         ("frames_rendered", int(cert.frames_rendered)),
         ("imaging", cert.imaging),
         ("filled_points", int(cert.filled_points)),
+        ("working_volume", cert.working_volume or "none"),
         ("reason", " ".join(str(cert.reason).split())),
         ("node", node_name),
     ]

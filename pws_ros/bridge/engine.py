@@ -39,6 +39,7 @@ from ..core.cloud import Cloud
 from ..core.errors import PwsError, require
 from ..core.motion import UNITS
 from ..core.result import Certificate, error_certificate
+from ..core.volume import volume_text
 from .config import PwsConfig, check_consistency, resolve_path
 from .preview import render_previews
 from .scheme import PlanBundle, rendered_plan_from_parts
@@ -79,6 +80,14 @@ def resolve_device_with_fallback(device: str, log: LogFn | None = None) -> str:
     return dev
 
 
+def filled_drawn(cloud: Cloud, imaging: Any) -> int:
+    """How many of the points the imaging draws have a filled depth: ``cloud.filled``; none with a working
+    volume, which draws measured points only (where the cloud says which points were filled)."""
+    if getattr(imaging, "volume", None) is None or cloud.filled_mask is None:
+        return int(cloud.filled)
+    return 0
+
+
 @dataclass
 class FrameResult:
     """The outcome of one input frame: one certificate per configured axis (in config order)."""
@@ -116,7 +125,9 @@ class FrameCertifier:
         self._dense = dense_cloud
         self._lock = threading.Lock()
         self._aspect_warned = False       # paper imaging: the aspect-ratio warning was given
-        self._imaging_described = False   # surfel imaging: its description and memory estimate were logged
+        # surfel imaging: its description and memory estimate are logged at the first frame, and again when a
+        # parameter change gives it another working volume, background or uncovered rule
+        self._imaging_described: tuple | None = None
         self._sigma_checked: float | None = None
         self._batch_checked = False       # the batch size was timed against a small one (check_batch_size)
         self.batch_size = int(config.batch_size)   # images per classifier call: the configured, or a faster smaller one
@@ -184,10 +195,10 @@ class FrameCertifier:
                 self._aspect_warned = True
                 self.log("warn", f"camera {intr.width}x{intr.height} is rendered at {size[1]}x{size[0]}: the aspect ratio changes "
                                  f"(fx and fy are scaled differently; imaging: surfel crops instead)")
-        im = make_imaging(c.imaging, intr, size, background=c.background, border=c.border, cloud=cloud, radii=c.radii,
-                          render_factor=c.render_factor, uncovered=c.uncovered)
-        if im.kind == "surfel" and not self._imaging_described:
-            self._imaging_described = True
+        im = make_imaging(c.imaging, intr, size, background=c.background_value, border=c.border, cloud=cloud, radii=c.radii,
+                          render_factor=c.render_factor, uncovered=c.uncovered, volume=c.working_volume)
+        if im.kind == "surfel" and self._imaging_described != (im.volume, im.background, im.uncovered):
+            self._imaging_described = (im.volume, im.background, im.uncovered)
             from ..core.certify import grid_cap, segment_bytes
 
             fit = grid_cap(im, self.certify_config())
@@ -300,7 +311,7 @@ class FrameCertifier:
         c = self.config
         return error_certificate(axis, UNITS[axis], c.method, c.coverage, c.radius_for(axis), reason,
                                  sigma=c.sigma, n0=c.n0, n=c.n, alpha=c.alpha / max(1, len(c.axes)), seed=c.seed,
-                                 imaging=c.imaging, frame_alpha=c.alpha, **kw)
+                                 imaging=c.imaging, frame_alpha=c.alpha, working_volume=volume_text(c.working_volume), **kw)
 
     def _guard(self, axis: str, fn: Callable[[], Certificate]) -> Certificate:
         try:
@@ -350,7 +361,7 @@ class FrameCertifier:
             bundle.errors = {a: str(exc) for a in bundle.axes}
             return bundle
         bundle = PlanBundle(int(stamp_ns), frame_id or intr.frame_id, self.config.method, imaging.camera,
-                            list(self.config.axes), imaging=imaging, filled_points=int(cloud.filled))
+                            list(self.config.axes), imaging=imaging, filled_points=filled_drawn(cloud, imaging))
         if self.config.method == "cms":
             for a in bundle.axes:
                 bundle.errors[a] = "method cms is only available in the pipeline node (it samples random poses inside the certifier)"
@@ -380,7 +391,7 @@ class FrameCertifier:
         if isinstance(imaging, Imaging) and imaging.kind == "surfel":
             return render_plan_surfel(self.source_cloud(cloud, dense_cloud), imaging, plan, device=self.device)
         cam = imaging.camera if isinstance(imaging, Imaging) else imaging
-        return render_plan(self.source_cloud(cloud, dense_cloud), cam, plan, background=self.config.background, device=self.device)
+        return render_plan(self.source_cloud(cloud, dense_cloud), cam, plan, background=self.config.background_value, device=self.device)
 
     # ---- stage 3: certify ----
     def certify_rendered(self, rendered: Any, stamp_ns: int = 0, imaging: Any = None) -> Certificate:
@@ -392,6 +403,7 @@ class FrameCertifier:
         cert.imaging = str(rendered.plan.details.get("imaging", self.config.imaging))
         if imaging is not None:
             cert.bounds["imaging"] = imaging.to_dict()
+            cert.working_volume = volume_text(getattr(imaging, "volume", None))
         return self._stamp(cert)
 
     def certify_assembled(self, frame: AssembledFrame) -> FrameResult:
@@ -502,7 +514,7 @@ class FrameCertifier:
                     else:
                         cert = self.certify_axis(cloud, imaging, axis, dense_cloud, preview_every, previews, plans,
                                                  stamp_ns=int(stamp_ns), sizes=sizes)
-                    cert.filled_points = int(cloud.filled)   # the statement is about the cloud with filled depth
+                    cert.filled_points = filled_drawn(cloud, imaging)   # the statement is about the cloud with filled depth
                     if sizes is not None:
                         spent = time.perf_counter() - t1
                         if sizes.fits:

@@ -43,19 +43,23 @@ def render_params_yaml(config: Any = None) -> str:
         "  ros__parameters:",
     ]
     params = config.to_params() if config is not None else {p.name: p.default for p in PARAMS}
-    done_radius = False
+    groups = {"radius": "requested certification radius b per axis: the motion range is [-b, b]",
+              "working_volume": "surfel imaging: the working volume, the part of the one-frame cloud that is drawn "
+                                "(docs/imaging.md section 4a); far: 0 = none"}
+    opened = ""
     for spec in PARAMS:
         extra = _range_text(spec)
         meta = "; ".join(x for x in (extra, "(ro)" if spec.read_only else "", "nodes: " + ", ".join(spec.nodes)) if x)
-        if spec.name.startswith("radius."):
-            if not done_radius:
-                lines.append("    # requested certification radius b per axis: the motion range is [-b, b]")
-                lines.append("    radius:")
-                done_radius = True
-            axis = spec.name.split(".", 1)[1]
+        group, _, key = spec.name.rpartition(".")
+        if group:   # dotted names nest, as ROS 2 parameter files write them
+            if group != opened:
+                lines.append(f"    # {groups[group]}")
+                lines.append(f"    {group}:")
+                opened = group
             lines.append(f"      # {spec.description}; {meta}")
-            lines.append(f"      {axis}: {_yaml_value(params[spec.name])}")
+            lines.append(f"      {key}: {_yaml_value(params[spec.name])}")
             continue
+        opened = ""
         lines.append(f"    # {spec.description}; {meta}")
         lines.append(f"    {spec.name}: {_yaml_value(params[spec.name])}")
     return "\n".join(lines) + "\n"

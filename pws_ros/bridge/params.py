@@ -109,12 +109,24 @@ PARAMS: tuple[ParamSpec, ...] = (
               "plans only a few frames, e.g. sub-pixel motions); 0 = as planned", range=(0, 1_000_000), nodes=_PLAN),
     ParamSpec("dense_cloud_path", "", "prior dense cloud (.npz with points, colors in the camera optical frame) for method pws; empty otherwise",
               read_only=True, nodes=_PLAN),
-    ParamSpec("background", 0.0, "pixel value of the masked border, and where no point is drawn (paper imaging; surfel "
-              "imaging with uncovered: background)", range=(0.0, 1.0), nodes=_PLAN),
+    ParamSpec("background", -1.0, "pixel value of the masked border, and where no point is drawn (paper imaging; surfel "
+              "imaging with uncovered: background; outside the working volume); -1 = automatic: 0.5 (mid-grey) with a "
+              "working volume, else 0", range=(-1.0, 1.0), nodes=_PLAN),
     ParamSpec("uncovered", "frame", "surfel imaging: what a pixel that no surfel covers shows (a disocclusion, what the "
               "recording never saw): frame = the colour the alpha = 0 frame has at that pixel, fixed for the whole motion "
               "(the least spurious contrast; background where nothing covers it at alpha = 0 either); background = the "
               "background value", choices=UNCOVERED, nodes=_PLAN),
+    ParamSpec("working_volume.far", 0.0, "surfel imaging: the far face of the working volume, the part of the one-frame cloud "
+              "that is drawn (the robot's working range: a hand, an object in reach, not the room behind): only points with "
+              "near <= z <= far (and inside the x/y limits that are set) at alpha = 0 are drawn, moving with the camera as "
+              "usual; pixels no drawn point covers show their uncovered value (background outside the volume); a frame with "
+              "no measured point inside is an ERROR; 0 = no working volume (every point is drawn)", range=(0.0, 1e6),
+              nodes=_PLAN, unit="m"),
+    ParamSpec("working_volume.near", 0.0, "surfel imaging: the near face of the working volume (points nearer than this, "
+              "along the optical axis z, are not drawn)", range=(0.0, 1e6), nodes=_PLAN, unit="m"),
+    *(ParamSpec(f"working_volume.{axis}_{end}", 0.0, f"surfel imaging: the working volume's {end}imum {axis} (camera optical "
+                f"frame: x right, y down); {axis}_min = {axis}_max = 0: no limit along {axis}", range=(-1e6, 1e6), nodes=_PLAN,
+                unit="m") for axis in ("x", "y") for end in ("min", "max")),
     ParamSpec("render_width", 0, "paper imaging: rendered frame width; 0 = the model's declared input size (else the camera's)", range=(0, 8192), read_only=True, nodes=_PLAN, unit="px"),
     ParamSpec("render_height", 0, "paper imaging: rendered frame height; 0 = the model's declared input size (else the camera's)", range=(0, 8192), read_only=True, nodes=_PLAN, unit="px"),
     # -- smoothing and statistics --

@@ -8,7 +8,7 @@ from ..core.certify import CertifyConfig
 from ..core.coverage import anchor_indices
 from ..core.imaging import make_imaging, make_renderer, plan_for, segment_bounds
 from ..core.motion import UNITS
-from .common import add_imaging_size_arg, add_output_args, add_plan_args, add_scene_args, add_uncovered_arg, emit, load_scene, positive_int
+from .common import add_imaging_size_arg, add_output_args, add_plan_args, add_scene_args, add_drawing_args, emit, load_scene, positive_int, volume_from_args, background_from_args, add_background_arg
 
 MAX_LISTED = 20
 
@@ -33,8 +33,8 @@ def register(sub) -> None:
     p.add_argument("--anchors", type=positive_int, default=d.num_anchors, dest="num_anchors", metavar="K",
                    help=f"anchor frames whose distance bounds are checked, as --coverage anchors uses them "
                         f"(default {d.num_anchors})")
-    p.add_argument("--background", type=float, default=d.background, help="value of the masked border and of empty pixels (default 0.0)")
-    add_uncovered_arg(p)
+    add_background_arg(p)
+    add_drawing_args(p)
     p.add_argument("--seed", type=int, default=0, help="seed of the random interior poses (default 0)")
     p.add_argument("--device", default=d.device, help="torch device: cpu or cuda[:N] (default cpu)")
     add_output_args(p, "print the audit report as JSON")
@@ -43,9 +43,9 @@ def register(sub) -> None:
 
 def run(args) -> int:
     cloud, intr = load_scene(args)
-    CertifyConfig(background=args.background).validate()
-    im = make_imaging(args.imaging, intr, args.size, background=args.background, border=args.border, cloud=cloud,
-                      radii={args.axis: args.radius}, render_factor=args.render_factor, uncovered=args.uncovered)
+    CertifyConfig(background=background_from_args(args)).validate()
+    im = make_imaging(args.imaging, intr, args.size, background=background_from_args(args), border=args.border, cloud=cloud,
+                      radii={args.axis: args.radius}, render_factor=args.render_factor, uncovered=args.uncovered, volume=volume_from_args(args))
     plan = plan_for(cloud, im, args.axis, args.radius, args.method, step_px=args.step_px, delta=args.delta,
                     max_partitions=args.max_partitions, min_partitions=args.min_partitions)
     renderer = make_renderer(cloud, im, plan.axis, device=args.device)

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from ..core.errors import PwsError, require
-from .common import add_output_args, image_size
+from .common import add_output_args, add_volume_config_args, image_size
 
 DESCRIPTION = """\
 For each frame of a recording (or of several) and each axis: the certificate CEILING, the radius that a classifier
@@ -53,6 +53,7 @@ def register(subparsers) -> None:
                              ("--anchors", int, "most anchors per axis"), ("--render-factor", int, "surfel render factor"),
                              ("--seed", int, "random seed"), ("--batch-size", int, "images per classifier call")):
         c.add_argument(name, type=kind, default=None, help=f"{text} (default: config)")
+    add_volume_config_args(c)
     c.add_argument("--device", default=None, help="cpu or cuda:N")
     i = p.add_argument_group("input (as in pws replay)")
     for name in ("cloud", "depth", "color", "info", "depth-info"):

@@ -125,8 +125,8 @@ def add_smoothing_args(p: argparse.ArgumentParser) -> None:
                    help=f"anchors for --coverage anchors; with surfel imaging the most anchors placed from the distance "
                         f"bounds, a budget of n0 + ANCHORS * n classifier calls (default {d.num_anchors})")
     p.add_argument("--cms-sigma", type=positive_float, default=None, help="CMS motion-space sigma (default per axis, REFERENCE.md)")
-    p.add_argument("--background", type=float, default=0.0, help="value of the masked border and of empty pixels (default 0.0)")
-    add_uncovered_arg(p)
+    add_background_arg(p)
+    add_drawing_args(p)
 
 
 def add_output_args(p, json_help: str, quiet_help: str | None = None) -> None:
@@ -137,16 +137,78 @@ def add_output_args(p, json_help: str, quiet_help: str | None = None) -> None:
         p.add_argument("--quiet", action="store_true", help=quiet_help)
 
 
-def add_uncovered_arg(p) -> None:
+def add_drawing_args(p) -> None:
+    """What the surfel imaging draws: ``--uncovered`` and ``--working-volume``."""
     p.add_argument("--uncovered", choices=UNCOVERED, default="frame",
                    help="surfel imaging: what a pixel no surfel covers shows: frame = its colour in the alpha = 0 frame "
                         "(default), background = --background")
+    add_working_volume_arg(p, "(default: none, every point is drawn)")
+
+
+VOLUME_KEYS = ("near", "far", "x_min", "x_max", "y_min", "y_max")
+VOLUME_METAVAR = "[NEAR,]FAR[,XMIN,XMAX,YMIN,YMAX]"
+
+
+def add_background_arg(p) -> None:
+    p.add_argument("--background", type=float, default=None,
+                   help="value of the masked border and of empty pixels (default 0.0; 0.5 with --working-volume)")
+
+
+def add_working_volume_arg(p, default_text: str) -> None:
+    p.add_argument("--working-volume", type=working_volume_limits, default=None, metavar=VOLUME_METAVAR,
+                   help="surfel imaging: draw only the points with NEAR <= z <= FAR metres at alpha = 0 (and XMIN <= x <= XMAX, "
+                        "YMIN <= y <= YMAX in the camera's optical frame); the rest of the image shows the background. "
+                        f"E.g. 1.5 (0 to 1.5 m), 0.3,1.5; 0 = none {default_text}")
+
+
+def add_volume_config_args(group) -> None:
+    """``--working-volume`` and ``--background`` of the commands that read the nodes' config (replay, ceiling,
+    finetune): they override ``working_volume.*`` and ``background``."""
+    add_working_volume_arg(group, "(default: config working_volume, none)")
+    group.add_argument("--background", type=float, default=None, metavar="V",
+                       help="value in [0, 1] of the masked border and of what no drawn point covers, e.g. outside the "
+                            "working volume (default: config background, -1 = automatic: 0.5 with a working volume, else 0)")
+
+
+def working_volume_limits(text: str) -> dict[str, float]:
+    """``--working-volume`` as ``{near, far, x_min, ...}`` (metres): FAR, NEAR,FAR or all six."""
+    parts = [t for t in text.replace(",", " ").split() if t]
+    vals = [_parsed(t, float, "a number") for t in parts]
+    if len(vals) not in (1, 2, 6) or not all(math.isfinite(v) for v in vals):
+        raise argparse.ArgumentTypeError(f"expected FAR, NEAR,FAR or NEAR,FAR,XMIN,XMAX,YMIN,YMAX (finite metres), got {text!r}")
+    if len(vals) == 1:
+        vals = [0.0] + vals
+    return dict(zip(VOLUME_KEYS, vals))
+
+
+def working_volume_params(limits: dict[str, float] | None) -> dict[str, float]:
+    """The ``working_volume.*`` parameters of ``--working-volume`` (every key, so that the option replaces
+    the config's volume as a whole); {} when the option is not given."""
+    if limits is None:
+        return {}
+    return {f"working_volume.{k}": float(limits.get(k, 0.0)) for k in VOLUME_KEYS}
+
+
+def volume_from_args(args):
+    """The :class:`~pws_ros.core.volume.WorkingVolume` of ``--working-volume`` (None: not given, or FAR 0)."""
+    from ..core.volume import volume_from_limits
+
+    limits = getattr(args, "working_volume", None)
+    return None if limits is None else volume_from_limits(**{k: float(limits.get(k, 0.0)) for k in VOLUME_KEYS})
+
+
+def background_from_args(args) -> float:
+    """``--background``; not given: 0.0, or 0.5 with a working volume (:func:`~pws_ros.core.volume.resolve_background`)."""
+    from ..core.volume import resolve_background
+
+    given = getattr(args, "background", None)
+    return resolve_background(-1.0 if given is None else float(given), volume_from_args(args))
 
 
 def config_from_args(args) -> CertifyConfig:
-    return CertifyConfig(sigma=args.sigma, n0=args.n0, n=args.n, alpha=args.alpha, seed=args.seed, device=args.device,
+    return CertifyConfig(working_volume=volume_from_args(args), sigma=args.sigma, n0=args.n0, n=args.n, alpha=args.alpha, seed=args.seed, device=args.device,
                          batch_size=args.batch_size, coverage=args.coverage, num_anchors=args.num_anchors,
-                         background=args.background, uncovered=args.uncovered, max_partitions=args.max_partitions,
+                         background=background_from_args(args), uncovered=args.uncovered, max_partitions=args.max_partitions,
                          min_partitions=args.min_partitions, delta=args.delta,
                          cms_sigma=args.cms_sigma, imaging=getattr(args, "imaging", "surfel"),
                          border=getattr(args, "border", -1), step_px=getattr(args, "step_px", DEFAULT_STEP_PX),

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from .common import add_output_args
+from .common import add_output_args, add_volume_config_args, working_volume_params
 
 DESCRIPTION = """\
 Randomized smoothing certifies a classifier that keeps its answer under Gaussian noise of the sigma
@@ -108,6 +108,7 @@ def register(subparsers) -> None:
     c.add_argument("--imaging", default=None, choices=("surfel", "paper"), help="imaging model (default: config imaging, surfel)")
     c.add_argument("--render-factor", type=int, default=None, metavar="K", help="surfel imaging: render at K times the model's input (default: config, 2)")
     c.add_argument("--border", type=int, default=None, help="surfel imaging: masked border in output pixels (-1 = from the radii)")
+    add_volume_config_args(c)
 
     i = p.add_argument_group("input (as in `pws replay`)")
     i.add_argument("--cloud-topic", default=None, help="organized PointCloud2 topic")
@@ -129,10 +130,11 @@ def options_from_args(args: argparse.Namespace):
     cfg = load_replay_config(args.config)
     params = axes_radius_params(args, cfg)
     for attr, name in (("imaging", "imaging"), ("render_factor", "render_factor"), ("border", "border"),
-                       ("sync_tolerance", "sync_tolerance_s"), ("sync_max_skew", "sync_max_skew_s")):
+                       ("sync_tolerance", "sync_tolerance_s"), ("sync_max_skew", "sync_max_skew_s"), ("background", "background")):
         v = getattr(args, attr)
         if v is not None:
             params[name] = v
+    params.update(working_volume_params(args.working_volume))
     cfg = override_config(cfg, params)
     topics = input_topics(args)
     interval = progress_interval(args)

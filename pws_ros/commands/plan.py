@@ -2,7 +2,8 @@
 from __future__ import annotations
 
 from ..core.imaging import make_imaging, plan_for
-from .common import add_imaging_size_arg, add_output_args, add_plan_args, add_scene_args, emit, load_scene
+from .common import (add_imaging_size_arg, add_output_args, add_plan_args, add_scene_args, add_working_volume_arg, emit, load_scene,
+                     volume_from_args)
 
 
 def register(sub) -> None:
@@ -13,6 +14,7 @@ def register(sub) -> None:
     add_plan_args(p)
     add_imaging_size_arg(p)
     p.add_argument("--out", metavar="PLAN.json", help="also write the plan as JSON (input of `pws render --plan`)")
+    add_working_volume_arg(p, "(default: none, every point is drawn)")
     add_output_args(p, "print the plan as JSON")
     p.set_defaults(func=run)
 
@@ -20,7 +22,7 @@ def register(sub) -> None:
 def run(args) -> int:
     cloud, intr = load_scene(args)
     im = make_imaging(args.imaging, intr, args.size, border=args.border, cloud=cloud, radii={args.axis: args.radius},
-                      render_factor=args.render_factor)
+                      render_factor=args.render_factor, volume=volume_from_args(args))
     plan = plan_for(cloud, im, args.axis, args.radius, args.method, step_px=args.step_px, delta=args.delta,
                     max_partitions=args.max_partitions, min_partitions=args.min_partitions)
     if args.out:

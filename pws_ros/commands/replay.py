@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from ..core.errors import PwsError, require
-from .common import add_output_args
+from .common import add_output_args, add_volume_config_args, working_volume_params
 
 DESCRIPTION = """\
 Certify every camera frame of a rosbag2 recording against camera motion, offline, with exactly the
@@ -194,6 +194,7 @@ def register(subparsers) -> None:
     c.add_argument("--render-factor", type=int, default=None, metavar="K",
                    help="surfel imaging: render at K times the model's input, camera pixels binned to it (default: config "
                         "render_factor, 2; 0 = the camera's full resolution, slower)")
+    add_volume_config_args(c)
     c.add_argument("--anchors", type=int, default=None,
                    help="most anchors per axis (budget n0 + anchors * n classifier calls; default: config num_anchors, 24)")
     c.add_argument("--time-budget", type=float, default=None, metavar="S",
@@ -256,6 +257,9 @@ def build_config(args: argparse.Namespace):
         v = getattr(args, attr, None)
         if v is not None:
             params[name] = str(Path(v).expanduser().resolve()) if attr in ("model", "classes", "denoiser", "dense_cloud") else v
+    params.update(working_volume_params(getattr(args, "working_volume", None)))
+    if getattr(args, "background", None) is not None:
+        params["background"] = args.background
     if params.get("method") == "pws" and getattr(args, "imaging", None) is None:
         params["imaging"] = "paper"  # the entire scene cloud has no depth pixels to make surfels of
     return override_config(cfg, params)

@@ -49,6 +49,7 @@ from .motion import UNITS, parse_axis
 from .partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, Plan, check_radius, validate_grid
 from .result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_NOT_CERTIFIED, Certificate
 from .smoothing import SmoothedClassifier, bonferroni, clopper_pearson_lower
+from .volume import WorkingVolume, volume_text
 
 METHODS = ("pws", "pws_l", "pws_of", "cms")
 
@@ -81,6 +82,8 @@ class CertifyConfig:
     # num_anchors * n // K), fixed before any estimation sample is drawn; off: n per anchor. A time budget
     # that shrinks the sizes turns it on (they pay for num_anchors * n samples; bridge.budget)
     spread_estimation: bool = False
+    # surfel: only the points inside are drawn (core.volume; docs/imaging.md section 4a); None: every point
+    working_volume: WorkingVolume | None = None
 
     def validate(self) -> "CertifyConfig":
         require(math.isfinite(self.sigma) and self.sigma > 0, f"sigma must be positive, got {self.sigma}")
@@ -93,6 +96,8 @@ class CertifyConfig:
         require(math.isfinite(self.background), f"background must be finite, got {self.background}")
         require(self.uncovered in UNCOVERED, f"unknown uncovered rule {self.uncovered!r}: expected one of {', '.join(UNCOVERED)}")
         require(self.imaging in IMAGING_KINDS, f"unknown imaging model {self.imaging!r}: expected one of {', '.join(IMAGING_KINDS)}")
+        require(self.working_volume is None or self.imaging == "surfel",
+                "a working volume needs surfel imaging (imaging: paper draws every point)")
         require(math.isfinite(self.step_px) and self.step_px > 0, f"step_px must be positive, got {self.step_px}")
         require(int(self.render_factor) >= 0, f"render_factor must be >= 0 (0: the camera's resolution), got {self.render_factor}")
         require(math.isfinite(self.max_memory_mb) and self.max_memory_mb >= 64,
@@ -128,7 +133,7 @@ def imaging_for(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, config
     """The imaging of ``config`` for camera ``intr`` and ``model``'s input size (border from ``radii``)."""
     return make_imaging(config.imaging, intr, getattr(model, "input_size", None), background=config.background,
                         border=int(config.border), cloud=cloud, radii=radii, render_factor=int(config.render_factor),
-                        uncovered=config.uncovered)
+                        uncovered=config.uncovered, volume=config.working_volume)
 
 
 def certify(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, axis: str, radius: float, method: str = "pws_of",
@@ -169,7 +174,7 @@ def certify(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, axis: str,
         cert = certify_cms(cloud, cam, model, axis, radius, motion_sigma=config.cms_sigma, n0=config.n0, n=config.n,
                            alpha=config.alpha, seed=config.seed, device=config.device, batch_size=config.batch_size,
                            background=config.background, progress=progress, imaging=imaging)
-        cert.imaging = imaging.kind
+        cert.imaging, cert.working_volume = imaging.kind, volume_text(imaging.volume)
         return cert
     t_start = time.perf_counter()
     if plan is None:
@@ -194,7 +199,7 @@ def certify(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, axis: str,
         cert = _certify_stream(renderer.render_batch, renderer.iter_frames(plan.alphas, chunk=config.chunk), plan, values,
                                rule, model, config, denoiser, progress, method, timings, t_start)
     cert.bounds["imaging"] = imaging.to_dict()
-    cert.imaging = imaging.kind
+    cert.imaging, cert.working_volume = imaging.kind, volume_text(imaging.volume)
     return cert
 
 

@@ -36,6 +36,7 @@ from .camera import CameraIntrinsics
 from .cloud import Cloud
 from .errors import PwsError, require
 from .motion import parse_axis, project
+from .volume import WorkingVolume, count_inside
 
 IMAGING_KINDS = ("surfel", "paper")
 UNCOVERED = ("frame", "background")   # what a native pixel no surfel covers shows (surfel imaging; see Imaging)
@@ -65,6 +66,8 @@ class Imaging:
     # surfel: what a native pixel that no surfel covers shows: "frame" = its colour in the alpha = 0 frame
     # (``background`` where no surfel covers it there either), fixed for the whole motion; "background"
     uncovered: str = "background"
+    # surfel: the part of the cloud that is drawn (docs/imaging.md section 4a; None: every point)
+    volume: WorkingVolume | None = None
 
     @property
     def out_shape(self) -> tuple[int, int]:
@@ -80,7 +83,8 @@ class Imaging:
         binned = "" if s == 1 else (f", cloud binned {s}x{s} and rendered at {self.camera.width}x{self.camera.height}")
         uncovered = (f"uncovered = the alpha = 0 frame (else {self.background:g})" if self.uncovered == "frame"
                      else f"uncovered = {self.background:g}")
-        return (f"surfel imaging: {src.width}x{src.height} camera, centred crop {s * self.camera.width}x{s * self.camera.height} "
+        volume = "" if self.volume is None else f"working volume {self.volume.describe()} (outside: {self.background:g}), "
+        return (f"surfel imaging: {src.width}x{src.height} camera, {volume}centred crop {s * self.camera.width}x{s * self.camera.height} "
                 f"at ({self.crop[0]}, {self.crop[1]}){binned}, {self.factor}x{self.factor} block mean to {w}x{h}, border "
                 f"{self.border[0]} col / {self.border[1]} row masked (= {self.background:g}), {uncovered}")
 
@@ -90,11 +94,11 @@ class Imaging:
         try:
             im = cls(str(d["kind"]), camera, int(d["factor"]), (int(d["border_cols"]), int(d["border_rows"])),
                      float(d["background"]), None, (int(d["crop_x0"]), int(d["crop_y0"])), int(d.get("decimate", 1)),
-                     str(d.get("uncovered", "background")))
+                     str(d.get("uncovered", "background")), WorkingVolume.from_dict(d.get("working_volume")))
         except (KeyError, TypeError, ValueError) as exc:
             raise PwsError(f"malformed imaging description: {exc}") from None
-        require(im.kind in IMAGING_KINDS and im.factor >= 1 and im.decimate >= 1 and im.uncovered in UNCOVERED,
-                f"malformed imaging description: {d}")
+        require(im.kind in IMAGING_KINDS and im.factor >= 1 and im.decimate >= 1 and im.uncovered in UNCOVERED
+                and (im.volume is None or im.kind == "surfel"), f"malformed imaging description: {d}")
         require(camera.width % im.factor == 0 and camera.height % im.factor == 0,
                 f"imaging factor {im.factor} does not divide the camera {camera.width}x{camera.height}")
         return im
@@ -103,23 +107,35 @@ class Imaging:
         return {"kind": self.kind, "factor": self.factor, "border_cols": self.border[0], "border_rows": self.border[1],
                 "crop_x0": self.crop[0], "crop_y0": self.crop[1], "native_width": self.camera.width,
                 "native_height": self.camera.height, "width": self.out_shape[1], "height": self.out_shape[0],
-                "background": self.background, "decimate": self.decimate, "uncovered": self.uncovered}
+                "background": self.background, "decimate": self.decimate, "uncovered": self.uncovered,
+                "working_volume": None if self.volume is None else self.volume.to_dict()}
+
+    def select(self, points: np.ndarray, filled_mask: np.ndarray | None = None) -> np.ndarray:
+        """(N,) bool: the points the imaging draws: all without a working volume; with one, the measured points
+        inside it (``filled_mask``: which points have a filled depth; they are never inside)."""
+        if self.volume is None:
+            return np.ones(len(points), bool)
+        inside = self.volume.contains(points)
+        return inside if filled_mask is None else inside & ~np.asarray(filled_mask, bool)
 
 
 def make_imaging(kind: str, intr: CameraIntrinsics, model_size: tuple[int, int] | None, *, background: float = 0.0,
                  border: int = -1, cloud: Cloud | None = None, radii: dict[str, float] | None = None,
-                 render_factor: int = 0, uncovered: str = "background") -> Imaging:
+                 render_factor: int = 0, uncovered: str = "background", volume: WorkingVolume | None = None) -> Imaging:
     """The imaging of camera ``intr`` for a classifier of input ``model_size`` = (H, W) (None: any size).
 
     ``border`` < 0 computes it from ``cloud`` and the motion ``radii`` ({axis: b}) of the frame
     (:func:`auto_border`); 0 masks nothing. ``render_factor`` (surfel): frames are rendered at that many
     times the classifier's input (0: the camera's own resolution, the largest factor that fits); a
     smaller factor bins the camera's pixels ``decimate x decimate`` (see :func:`bin_cloud`). ``uncovered``
-    (surfel): what a native pixel no surfel covers shows (:data:`UNCOVERED`, see :class:`Imaging`)."""
+    (surfel): what a native pixel no surfel covers shows (:data:`UNCOVERED`, see :class:`Imaging`). ``volume``
+    (surfel): only the points of the cloud inside it are drawn (:mod:`.volume`); with a ``cloud``, PwsError
+    when no measured point lies in it (nothing to certify about)."""
     require(kind in IMAGING_KINDS, f"unknown imaging model {kind!r}: expected one of {', '.join(IMAGING_KINDS)}")
     require(uncovered in UNCOVERED, f"unknown uncovered rule {uncovered!r}: expected one of {', '.join(UNCOVERED)}")
     require(math.isfinite(background), f"background must be finite, got {background}")
     h, w = (intr.height, intr.width) if model_size is None else (int(model_size[0]), int(model_size[1]))
+    require(volume is None or kind == "surfel", "a working volume needs surfel imaging (imaging: paper draws every point)")
     if kind == "paper":
         cam = intr if (h, w) == (intr.height, intr.width) else intr.scaled(w, h)
         return Imaging("paper", cam, 1, (0, 0), float(background), intr, (0, 0))
@@ -133,7 +149,12 @@ def make_imaging(kind: str, intr: CameraIntrinsics, model_size: tuple[int, int] 
     cam = replace(intr, width=s * k * w, height=s * k * h, cx=intr.cx - x0, cy=intr.cy - y0)
     if s > 1:
         cam = cam.scaled(k * w, k * h)
-    im = Imaging("surfel", cam, k, (0, 0), float(background), intr, (x0, y0), s, uncovered)
+    im = Imaging("surfel", cam, k, (0, 0), float(background), intr, (x0, y0), s, uncovered, volume)
+    if volume is not None and cloud is not None:
+        measured, filled = count_inside(volume, cloud.points, cloud.filled_mask)
+        require(measured > 0, f"nothing in the working volume ({volume.describe()}): none of the frame's "
+                              f"{len(cloud.points) - cloud.filled} measured points lies in it"
+                              + (f" ({filled} filled ones do)" if filled else ""))
     if border < 0:
         bx, by = auto_border(im, cloud, radii or {}) if cloud is not None else (0, 0)
     else:
@@ -144,10 +165,10 @@ def make_imaging(kind: str, intr: CameraIntrinsics, model_size: tuple[int, int] 
 
 def auto_border(im: Imaging, cloud: Cloud, radii: dict[str, float]) -> tuple[int, int]:
     """Output pixels to mask (columns, rows) so that no point of the crop moves in from beyond the
-    recorded image: the largest displacement of a point seen in the crop over every ``[-b, b]``, less
+    recorded image: of the points drawn (the working volume's), the largest displacement of a point seen in the crop over every ``[-b, b]``, less
     the native pixels available beyond the crop on the narrower side, in output pixels (rounded up)."""
     src = im.source or im.camera
-    pts = cloud.points[cloud.points[:, 2] > 0]
+    pts = cloud.points[(cloud.points[:, 2] > 0) & im.select(cloud.points, cloud.filled_mask)]   # the points that are drawn
     if not len(pts) or not radii:
         return (0, 0)
     u0, v0, _ = project(pts, im.camera, "tx", 0.0)

@@ -54,7 +54,8 @@ def plan_for(cloud: Cloud, imaging: Imaging, axis: str, radius: float, method: s
     surfels that are drawn: the cloud binned by :func:`bin_cloud`, in the rendered camera), the
     paper's methods (:func:`.partition.plan_partitions`, ``delta`` for PwS-OF) for paper imaging."""
     if imaging.kind == "surfel":  # the speeds of the surfels that are rendered (the binned cloud)
-        pts, cols = bin_cloud(np.asarray(cloud.points, dtype=np.float64), np.asarray(cloud.colors, np.float32), imaging)
+        pts, cols = bin_cloud(np.asarray(cloud.points, dtype=np.float64), np.asarray(cloud.colors, np.float32), imaging,
+                              cloud.filled_mask)
         return plan_step(Cloud(pts, cols) if len(pts) and pts is not cloud.points else cloud, imaging.camera, axis, radius, method,
                          step_px=step_px, max_partitions=max_partitions, min_partitions=min_partitions)
     return plan_partitions(cloud, imaging.camera, axis, radius, method, delta=delta,

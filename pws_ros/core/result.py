@@ -49,6 +49,7 @@ class Certificate:
     seed: int | None = None
     imaging: str = ""                 # surfel | paper (core.imaging): what the certified frames are
     filled_points: int = 0            # points of the one-frame cloud whose depth was filled (depth_fill), not measured
+    working_volume: str = ""          # the part of the cloud that is drawn (core.volume; docs/imaging.md 4a); "" = all of it
     plan: Any = field(default=None, repr=False, compare=False)   # the core.partition.Plan it rests on (not serialised)
     frame_alpha: float | None = None  # risk of the whole frame's statement (all its axes together)
 

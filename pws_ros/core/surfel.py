@@ -66,8 +66,9 @@ class SurfelRenderer:
         self.device = resolve_device(device)
         self.max_elements = int(max_elements)
         self.samples = SamplePoints(self.intr.height, self.intr.width, self.device)
-        self._set_points(*bin_cloud(np.asarray(cloud.points, dtype=np.float64), np.asarray(cloud.colors, np.float32), imaging))
-        # what each native pixel shows where no surfel covers it (imaging.uncovered), from the whole cloud,
+        self._set_points(*bin_cloud(np.asarray(cloud.points, dtype=np.float64), np.asarray(cloud.colors, np.float32), imaging,
+                                    cloud.filled_mask))
+        # what each native pixel shows where no surfel covers it (imaging.uncovered), from every surfel drawn,
         # fixed for the whole motion: the renderer and the bounds read this one table
         HW = self.intr.height * self.intr.width
         if imaging.uncovered == "frame":
@@ -156,7 +157,8 @@ def occlusion_key(points: np.ndarray) -> np.ndarray:
     return p[:, 0] * p[:, 0] + p[:, 1] * p[:, 1] + p[:, 2] * p[:, 2]
 
 
-def bin_cloud(points: np.ndarray, colors: np.ndarray, imaging: Imaging) -> tuple[np.ndarray, np.ndarray]:
+def bin_cloud(points: np.ndarray, colors: np.ndarray, imaging: Imaging,
+              filled_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The cloud the surfels are made of when frames are rendered below the camera's resolution
     (``imaging.decimate`` = s > 1): the points in front of the camera are binned by the rendered pixel
     their ``alpha = 0`` projection falls in (``floor`` of the pixel-edge coordinates, bins beyond the image
@@ -164,21 +166,28 @@ def bin_cloud(points: np.ndarray, colors: np.ndarray, imaging: Imaging) -> tuple
     centre at the depth of its nearest point (equal depths: the lower index), with the mean colour of the
     bin (float64, then float32). A camera's own ``s x s`` pixel block thus becomes one surfel, and the
     ``alpha = 0`` frame is the block mean of the valid pixels' colours. Order: bins row by row.
-    ``s = 1`` returns the cloud unchanged."""
+    ``s = 1`` returns the cloud unchanged.
+
+    First of all, with a working volume (``imaging.volume``, :mod:`.volume`) only the measured points inside
+    it (chosen at ``alpha = 0`` on the recorded coordinates; ``filled_mask``: the points with a filled depth,
+    never inside) are kept, in their order: every surfel the renderer and the bounds draw comes from here."""
     s = int(imaging.decimate)
-    if s == 1:
+    if s == 1 and imaging.volume is None:
         return points, colors
     cam = imaging.camera
     # the plan and the renderer of every axis of a frame bin the same cloud: the latest result is kept
     # (one entry, for the same array objects with the same contents (CRC-32 of their bytes: an edit in
-    # place is a new cloud) and the same camera; the result is shared, never modified)
+    # place is a new cloud), the same camera and volume; the result is shared, never modified)
     points, colors = np.ascontiguousarray(points), np.ascontiguousarray(colors)
-    key = (cam, s, points.shape, points.dtype.str, colors.dtype.str, zlib.crc32(memoryview(points).cast("B")),
-           zlib.crc32(memoryview(colors).cast("B")))
+    filled = None if imaging.volume is None or filled_mask is None else np.ascontiguousarray(filled_mask, dtype=bool)
+    key = (cam, s, imaging.volume, points.shape, points.dtype.str, colors.dtype.str, zlib.crc32(memoryview(points).cast("B")),
+           zlib.crc32(memoryview(colors).cast("B")), None if filled is None else zlib.crc32(memoryview(filled).cast("B")))
     for p_, c_, k_, out_ in _LAST_BINS:
         if p_ is points and c_ is colors and k_ == key:
             return out_
-    out_ = _bin(points, colors, cam)
+    inside = imaging.select(points, filled)
+    sel_p, sel_c = (points, colors) if inside.all() else (points[inside], colors[inside])
+    out_ = _bin(sel_p, sel_c, cam) if s > 1 else (sel_p, sel_c)
     _LAST_BINS[:] = [(points, colors, key, out_)]
     return out_
 

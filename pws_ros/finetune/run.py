@@ -118,7 +118,8 @@ class FinetuneRun:
         o, c = self.opts, self.opts.config
         cache = {"bags": [[str(Path(b).resolve()), _bag_stamp(Path(b))] for b in o.bags], "model_sha256": self.model_sha,
                  "classes": list(teacher.class_names), "imaging": c.imaging, "render_factor": c.render_factor, "border": c.border,
-                 "background": c.background, "render_size": [c.render_height, c.render_width], "axes": list(c.axes),
+                 "background": c.background_value,
+                 "working_volume": None if c.working_volume is None else c.working_volume.to_dict(), "render_size": [c.render_height, c.render_width], "axes": list(c.axes),
                  "radii": c.radii, "views": o.views, "seed": o.seed, "stride": o.stride, "max_frames": o.max_frames,
                  "topics": dict(sorted(o.topics.items())), "sync": [c.sync_tolerance_s, c.sync_max_skew_s],
                  "input_mode": c.input_mode}

@@ -60,6 +60,8 @@ class CeilingRow:
     model_class: str = ""
     model_p_a: float = math.nan
     recording: str = ""
+    whole: float = math.nan       # with a working volume: the ceiling of the whole frame (no volume), beside it
+    whole_s: float = math.nan
 
     def share(self, value: float) -> float:
         return value / self.requested if self.requested > 0 else math.nan
@@ -68,6 +70,7 @@ class CeilingRow:
         d = dict(self.__dict__)
         d["ceiling_share"] = self.share(self.ceiling)
         d["model_share"] = self.share(self.model)
+        d["whole_share"] = self.share(self.whole)
         return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
 
 
@@ -78,8 +81,9 @@ def _radii(result: ReplayResult) -> dict[tuple[int, str], Any]:
 def ceiling(opts: ReplayOptions, model: LoadedModel | None, *, input_size: tuple[int, int] | None = None,
             run=None) -> tuple[list[CeilingRow], ReplayResult, ReplayResult | None]:
     """Replay ``opts`` (no output bag) with the never-changing classifier of ``input_size`` (default: the
-    model's), then with ``model`` (None: the ceiling alone); the rows pair them by frame and axis. ``run``
-    is the replay function (tests)."""
+    model's), then with ``model`` (None: the ceiling alone); the rows pair them by frame and axis. With a
+    working volume configured, the ceiling of the whole frame (no volume) is measured too and put beside it.
+    ``run`` is the replay function (tests)."""
     from . import replay as _replay
 
     run = run or _replay
@@ -96,6 +100,12 @@ def ceiling(opts: ReplayOptions, model: LoadedModel | None, *, input_size: tuple
         got = run(replace(base, model=model))
         require(got.exit_code == 0, f"the model's run failed: {got.message}")
     theirs = _radii(got) if got is not None else {}
+    whole = {}
+    if opts.config.working_volume is not None:
+        no_volume = opts.config.with_params({f"working_volume.{k}": 0.0 for k in ("near", "far", "x_min", "x_max", "y_min", "y_max")})
+        frame = run(replace(base, config=no_volume, model=never_changing_model(size), denoiser=None))
+        require(frame.exit_code == 0 and frame.records, f"the whole frame's ceiling run failed: {frame.message}")
+        whole = _radii(frame)
     rows = []
     for (index, axis), (rec, c) in _radii(top).items():
         row = CeilingRow(index, rec.stamp_ns, axis, c.unit, float(c.requested_radius), float(c.radius),
@@ -104,6 +114,9 @@ def ceiling(opts: ReplayOptions, model: LoadedModel | None, *, input_size: tuple
             _r, m = theirs[(index, axis)]
             row.model, row.model_s, row.model_status = float(m.radius), float(m.timings.get("total", math.nan)), m.status
             row.model_class, row.model_p_a = m.class_name, float(m.min_p_a_lower)
+        if (index, axis) in whole:
+            _r, w = whole[(index, axis)]
+            row.whole, row.whole_s = float(w.radius), float(w.timings.get("total", math.nan))
         rows.append(row)
     for row in rows:
         row.recording = str(opts.bag)
@@ -117,6 +130,9 @@ def advice(rows: list[CeilingRow]) -> list[str]:
         sel = [r for r in rows if r.axis == axis]
         top = float(np.median([r.share(r.ceiling) for r in sel]))
         line = f"{axis}: median ceiling {top:.0%} of the requested radius"
+        frame = [r.share(r.whole) for r in sel if math.isfinite(r.whole)]
+        if frame:
+            line += f" in the working volume ({float(np.median(frame)):.0%} on the whole frame)"
         mod = [r.share(r.model) for r in sel if math.isfinite(r.model)]
         if mod:
             m = float(np.median(mod))
@@ -139,13 +155,17 @@ def format_rows(rows: list[CeilingRow]) -> str:
     names = [r.recording for r in rows]
     width = max(len(n) for n in names) if len(set(names)) > 1 else 0
     rec = (lambda n: f"{n:<{width}} ") if width else (lambda n: "")
-    head = rec("recording") + f"{'frame':>5} {'axis':>4} {'requested':>11} {'ceiling':>18} {'model':>18}  {'class, p_A':<24}"
+    volume = any(math.isfinite(r.whole) for r in rows)   # a working volume: its ceiling, and the whole frame's beside it
+    head = rec("recording") + f"{'frame':>5} {'axis':>4} {'requested':>11} {'ceiling':>18} " \
+        + (f"{'whole frame':>18} " if volume else "") + f"{'model':>18}  {'class, p_A':<24}"
     lines = [head]
     for r in rows:
         ceil = f"{r.share(r.ceiling):5.0%} {r.ceiling_s:5.1f} s"
+        frame = (f"{r.share(r.whole):5.0%} {r.whole_s:5.1f} s" if math.isfinite(r.whole) else "-") if volume else ""
         mod = f"{r.share(r.model):5.0%} {r.model_s:5.1f} s" if math.isfinite(r.model) else "-"
         cls = f"{r.model_class}, {r.model_p_a:.3f}" if r.model_status else ""
-        lines.append(rec(r.recording) + f"{r.frame:>5} {r.axis:>4} {r.requested:>9.4g} {r.unit:<1} {ceil:>18} {mod:>18}  {cls:<24}")
+        lines.append(rec(r.recording) + f"{r.frame:>5} {r.axis:>4} {r.requested:>9.4g} {r.unit:<1} {ceil:>18} "
+                     + (f"{frame:>18} " if volume else "") + f"{mod:>18}  {cls:<24}")
     return "\n".join(lines)
 
 

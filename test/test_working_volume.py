@@ -1,0 +1,305 @@
+"""The working volume (docs/imaging.md, section 4a) against an independent brute force.
+
+The selection rule is written out here with plain loops in float64 (``Z > 0``, ``near <= Z <= far``, and
+the lateral limits, all closed, on the recorded coordinates at alpha = 0); the frames are then the brute
+force of test_imaging (its reference renderer, binning and block mean: loops only, nothing from the
+production renderer or bounds) applied to the selected points. The production renderer must equal it,
+and every brute-force frame inside a segment must lie within the production bounds.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from test_imaging import AXES, CAM, SCALE, random_cloud, reference_bins, reference_frame
+from pws_ros.bridge.config import config_from_params
+from pws_ros.core.camera import CameraIntrinsics
+from pws_ros.core.cloud import Cloud, cloud_from_rgbd
+from pws_ros.core.errors import PwsError
+from pws_ros.core.imaging import UNCOVERED, Imaging, SurfelRenderer, make_imaging, segment_hulls
+from pws_ros.core.partition import make_grid
+from pws_ros.core.volume import WorkingVolume, volume_from_limits
+
+
+def reference_select(points, colors, near, far, x=None, y=None):
+    """The points of the volume, loops only (docs/imaging.md 4a): kept in their order."""
+    keep = []
+    for i, (X, Y, Z) in enumerate(points):
+        inside = Z > 0 and near <= Z <= far
+        if x is not None:
+            inside = inside and x[0] <= X <= x[1]
+        if y is not None:
+            inside = inside and y[0] <= Y <= y[1]
+        if inside:
+            keep.append(i)
+    return np.asarray(points)[keep].reshape(-1, 3), np.asarray(colors)[keep].reshape(-1, 3)
+
+
+def volume_cloud(rng):
+    """A random cloud of CAM (holes, strays, ties) whose depths straddle a far face: some points at the face
+    itself, at its float neighbours and a few micrometres either side of it."""
+    cloud = random_cloud(rng, True)
+    pts, cols = cloud.points.copy(), cloud.colors.copy()
+    far = float(np.median(pts[pts[:, 2] > 0, 2]))
+    idx = rng.choice(len(pts), min(8, len(pts)), replace=False)
+    for j, z in zip(idx, [far, np.nextafter(far, 0), np.nextafter(far, 2), far - 1e-6, far + 1e-6, far - 3e-3, far + 3e-3, far]):
+        pts[j] *= z / pts[j, 2] if pts[j, 2] > 0 else 1.0   # moved along its ray: the same pixel, depth z
+        pts[j, 2] = z
+    return Cloud(pts, cols), far
+
+
+def lateral(rng):
+    return tuple(sorted(rng.uniform(-0.4, 0.4, 2))) if rng.random() < 0.5 else None
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), axis=st.sampled_from(AXES), uncovered=st.sampled_from(UNCOVERED),
+       nseg=st.integers(1, 3), boxed=st.booleans())
+def test_renderer_and_bounds_under_a_volume_equal_the_brute_force(seed, axis, uncovered, nseg, boxed):
+    """Unbinned: the renderer draws exactly the brute force's selected points, at the grid poses and inside
+    segments (dense poses, the ends' float neighbours), and every such frame lies inside the bounds."""
+    rng = np.random.default_rng(seed)
+    cloud, far = volume_cloud(rng)
+    near = float(rng.uniform(0.0, 0.9))
+    x, y = (lateral(rng), lateral(rng)) if boxed else (None, None)
+    vol = WorkingVolume(near, far, x, y)
+    im = make_imaging("surfel", CAM, (3, 4), background=0.5, border=0, uncovered=uncovered, volume=vol) \
+        if len(reference_select(cloud.points, cloud.colors, near, far, x, y)[0]) else None
+    if im is None:   # nothing measured inside: refused (test_a_frame_with_nothing_inside_is_refused)
+        return
+    pts, cols = reference_select(cloud.points, cloud.colors, near, far, x, y)
+    r = SurfelRenderer(cloud, im, axis)
+    np.testing.assert_array_equal(r.points_np, pts)
+    b = SCALE[axis] * rng.uniform(0.3, 1.0)
+    alphas = make_grid(b, b / nseg)
+    frames = r.render_batch(alphas).numpy()
+    hulls = segment_hulls(r, alphas)
+    for i, a in enumerate(alphas):
+        np.testing.assert_allclose(frames[i], reference_frame(pts, cols, im, axis, a), atol=1e-6)
+    for i in range(len(alphas) - 1):
+        lo, hi = alphas[i], alphas[i + 1]
+        for a in [lo, hi, np.nextafter(lo, hi), np.nextafter(hi, lo), *rng.uniform(lo, hi, 8)]:
+            f = reference_frame(pts, cols, im, axis, a)
+            assert np.all(f >= hulls.lo[i] - 1e-7) and np.all(f <= hulls.hi[i] + 1e-7), (axis, i, a)
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), axis=st.sampled_from(AXES), uncovered=st.sampled_from(UNCOVERED))
+def test_binned_volume_selects_before_binning(seed, axis, uncovered):
+    """render_factor 1 on a 16x12 camera: the volume selects camera points first, the bins are made of the
+    selected ones only (their nearest depth, their mean colour), and the bounds hold."""
+    rng = np.random.default_rng(seed)
+    cam = CameraIntrinsics(16, 12, 14.0, 15.0, 7.5, 5.5, "cam")
+    depth = rng.uniform(0.8, 1.6, cam.shape)
+    depth[rng.random(cam.shape) < 0.1] = 0.0
+    cloud = cloud_from_rgbd(depth, rng.random(cam.shape + (3,)).astype(np.float32), cam)
+    near, far = 0.0, float(rng.uniform(1.0, 1.4))
+    im = make_imaging("surfel", cam, (3, 4), background=0.5, border=0, render_factor=1, uncovered=uncovered,
+                      volume=WorkingVolume(near, far))
+    pts, cols = reference_bins(*reference_select(cloud.points, cloud.colors, near, far), im.camera)
+    r = SurfelRenderer(cloud, im, axis)
+    np.testing.assert_allclose(r.points_np, pts, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(r.colors_np, cols, atol=1e-6)
+    b = SCALE[axis] * rng.uniform(0.3, 1.0)
+    alphas = make_grid(b, b / 2)
+    hulls = segment_hulls(r, alphas)
+    for i in range(len(alphas) - 1):
+        for a in [alphas[i], alphas[i + 1], *rng.uniform(alphas[i], alphas[i + 1], 6)]:
+            f = reference_frame(pts, cols, im, axis, a)
+            assert np.all(f >= hulls.lo[i] - 1e-7) and np.all(f <= hulls.hi[i] + 1e-7), (axis, i, a)
+
+
+def test_points_at_the_far_face_are_chosen_once_at_alpha_zero():
+    """A wall at exactly the far face (inside: the bounds are closed) and one 1 micrometre behind it
+    (outside). Moving the camera back by 5 mm (tz < 0) puts the inside wall beyond the far face: it is
+    still drawn; moving forward brings the outside one within it: still not drawn."""
+    cam = CameraIntrinsics(16, 12, 14.0, 14.0, 7.5, 5.5, "cam")
+    far = 1.25
+    depth = np.full(cam.shape, far)
+    depth[:, 8:] = far + 1e-6
+    rgb = np.zeros(cam.shape + (3,), np.float32)
+    rgb[:, :8] = 1.0
+    cloud = cloud_from_rgbd(depth, rgb, cam)
+    im = make_imaging("surfel", cam, (12, 16), background=0.25, border=0, uncovered="background", volume=WorkingVolume(0.0, far))
+    frames = SurfelRenderer(cloud, im, "tz").render_batch([-0.005, 0.0, 0.005]).numpy()
+    for f in frames:
+        assert np.all(f[:, 1:7] == 1.0)          # the inside wall, whatever its moved depth
+        assert np.all(f[:, 9:] == np.float32(0.25))   # the outside wall never
+    hulls = segment_hulls(SurfelRenderer(cloud, im, "tz"), make_grid(0.005, 0.0025))
+    for i, a in enumerate(np.linspace(-0.005, 0.005, 21)):
+        seg = min(int((a + 0.005) // 0.0025), 3)
+        f = reference_frame(*reference_select(cloud.points, cloud.colors, 0.0, far), im, "tz", a)
+        assert np.all(f >= hulls.lo[seg] - 1e-7) and np.all(f <= hulls.hi[seg] + 1e-7), a
+
+
+def test_uncovered_frame_comes_from_the_volume_and_the_outside_shows_the_background():
+    """A near square (0.8 m) before a far wall (2 m) with a volume of 0-1 m: at alpha = 0 the wall's pixels
+    show the background, and with uncovered "frame" a pixel the square leaves under motion shows the
+    square's alpha = 0 colour, never the wall's."""
+    cam = CameraIntrinsics(16, 12, 14.0, 14.0, 7.5, 5.5, "cam")
+    depth = np.full(cam.shape, 2.0)
+    depth[3:9, 5:11] = 0.8
+    rgb = np.zeros(cam.shape + (3,), np.float32)
+    rgb[3:9, 5:11] = 1.0
+    cloud = cloud_from_rgbd(depth, rgb, cam)
+    im = make_imaging("surfel", cam, (12, 16), background=0.5, border=0, uncovered="frame", volume=WorkingVolume(0.0, 1.0))
+    r = SurfelRenderer(cloud, im, "tx")
+    zero, moved = r.render_native([0.0, 0.04]).numpy()
+    expect = np.broadcast_to(np.where((depth < 1.0)[..., None], 1.0, 0.5), cam.shape + (3,))
+    np.testing.assert_array_equal(zero, expect.astype(np.float32))
+    assert set(np.unique(moved)) <= {np.float32(0.5), np.float32(1.0)}   # no wall colour (0) ever
+    assert not np.array_equal(moved, zero)
+
+
+def test_a_frame_with_nothing_inside_is_refused():
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(1.5, 2.0, CAM.shape)
+    cloud = cloud_from_rgbd(depth, rng.random(CAM.shape + (3,)).astype(np.float32), CAM)
+    with pytest.raises(PwsError, match=r"nothing in the working volume \(depth 0-1 m\): none of the frame's 48 measured"):
+        make_imaging("surfel", CAM, (3, 4), cloud=cloud, volume=WorkingVolume(0.0, 1.0))
+    # filled points do not count: column 0 without depth is filled from column 1 (X = -0.5 Z there, -0.36 Z in
+    # column 1); a volume around x = -0.5 Z holds the 6 filled points and no measured one
+    holes = depth.copy()
+    holes[:, 0] = 0.0
+    filled = cloud_from_rgbd(holes, rng.random(CAM.shape + (3,)).astype(np.float32), CAM, fill="row")
+    assert filled.filled == 6
+    with pytest.raises(PwsError, match=r"none of the frame's 42 measured points lies in it \(6 filled ones do\)"):
+        make_imaging("surfel", CAM, (3, 4), cloud=filled, volume=WorkingVolume(0.0, 2.1, (-1.1, -0.74)))
+    depth[2, 2] = 0.9
+    make_imaging("surfel", CAM, (3, 4), cloud=cloud_from_rgbd(depth, rng.random(CAM.shape + (3,)).astype(np.float32), CAM),
+                 volume=WorkingVolume(0.0, 1.0))   # one measured point is enough
+
+
+@pytest.mark.parametrize("near, far, x, y, what", [
+    (1.0, 1.0, None, None, "must be larger than near"), (1.5, 1.0, None, None, "must be larger than near"),
+    (-0.1, 1.0, None, None, "near must be >= 0"), (math.nan, 1.0, None, None, "finite"), (0.0, math.inf, None, None, "finite"),
+    (0.0, 1.0, (0.2, 0.2), None, "zero size"), (0.0, 1.0, None, (0.3, -0.3), "zero size"),
+    (0.0, 1.0, (math.nan, 0.2), None, "finite")])
+def test_bad_volumes_are_refused_naming_the_problem(near, far, x, y, what):
+    with pytest.raises(PwsError, match=what):
+        WorkingVolume(near, far, x, y)
+
+
+@pytest.mark.parametrize("params, what", [
+    ({"working_volume.near": 1.0, "working_volume.far": 0.5}, "must be larger than near"),
+    ({"working_volume.near": 1.0, "working_volume.far": 1.0}, "must be larger than near"),
+    ({"working_volume.near": -1.0, "working_volume.far": 1.0}, "out of range"),
+    ({"working_volume.far": math.nan}, "must be finite"),
+    ({"working_volume.far": 1.0, "working_volume.x_min": 0.2, "working_volume.x_max": 0.2}, "zero size"),
+    ({"working_volume.far": 0.0, "working_volume.near": 0.3}, "working_volume.far is 0"),
+    ({"working_volume.x_min": -0.3, "working_volume.x_max": 0.3}, "working_volume.far is 0"),
+    ({"working_volume.far": 1.5, "imaging": "paper"}, "needs imaging: surfel")])
+def test_bad_volume_parameters_are_refused_at_start(params, what):
+    with pytest.raises(PwsError, match=what):
+        config_from_params(params)
+
+
+def test_volume_parameters_and_description():
+    cfg = config_from_params({"working_volume.far": 1.5, "working_volume.y_min": -0.5, "working_volume.y_max": 0.25})
+    assert cfg.working_volume == WorkingVolume(0.0, 1.5, None, (-0.5, 0.25))
+    assert cfg.certify_config().working_volume == cfg.working_volume
+    assert config_from_params({}).working_volume is None and volume_from_limits(0.0, 0.0) is None
+    im = make_imaging("surfel", CAM, (3, 4), volume=cfg.working_volume, background=0.5)
+    assert "working volume depth 0-1.5 m, y -0.5 to 0.25 m (outside: 0.5)" in im.describe()
+    back = Imaging.from_dict(im.to_dict(), im.camera)
+    assert back == im and back.volume == cfg.working_volume
+    assert Imaging.from_dict(make_imaging("surfel", CAM, (3, 4)).to_dict(), CAM).volume is None
+    with pytest.raises(PwsError, match="working volume"):
+        Imaging.from_dict({**im.to_dict(), "working_volume": {"near": 2.0, "far": 1.0}}, im.camera)
+    with pytest.raises(PwsError, match="needs surfel imaging"):
+        make_imaging("paper", CAM, (3, 4), volume=cfg.working_volume)
+
+
+def test_the_nodes_record_the_volume_on_every_certificate_and_change_it_at_run_time(model_path):
+    """The pipeline and the four processes (ROS-free harness of test_nodes_logic: a 32x24 frame, a square at
+    1.2 m before a wall at 2 m) with working_volume 0-1.5 m: every certification names the volume, the four
+    processes certify as the pipeline does, and the self-audit finds every bound holding. A change at run
+    time goes through the nodes' own validation: a bad one is refused naming it."""
+    from test_nodes_logic import Bus, Context, four_nodes, params, play
+    from pws_ros.bridge import msgbuild
+    from pws_ros.bridge.config import check_consistency
+    from pws_ros.nodes.pipeline import PipelineNode
+
+    vol = {"working_volume.far": 1.5, "background": 0.5, "audit_every": 1}
+    stamps = [1_700_000_000_000_000_000]
+    got = {}
+    for name in ("pipeline", "four"):
+        bus = Bus()
+        if name == "pipeline":
+            ctx = Context(bus, "pipeline", **params(model_path, **vol))
+            nodes, tick = [PipelineNode(ctx)], []
+        else:
+            ctxs, nodes = four_nodes(bus, model_path, **vol)
+            tick = [ctxs["certifier"]]
+        try:
+            play(bus, stamps, lambda: bus.published["/certification"], tick=tick)
+            got[name] = msgbuild.parse_certification(bus.published["/certification"][0])
+            assert not bus.errors
+        finally:
+            for nd in nodes:
+                nd.close()
+            bus.close()
+    for axis in ("tx", "tz"):
+        for name in ("pipeline", "four"):
+            v = got[name][axis]
+            assert v["working_volume"] == "depth 0-1.5 m" and v["level"] in (0, 1), (name, axis, v["message"])
+        assert got["pipeline"][axis]["label"] == got["four"][axis]["label"]
+        assert got["pipeline"][axis]["p_a_lower"] == got["four"][axis]["p_a_lower"]
+    assert any("working volume depth 0-1.5 m" in m for lvl, m in ctx.logs), ctx.logs
+    cfg = ctx.config
+    with pytest.raises(PwsError, match="must be larger than near"):
+        check_consistency(cfg.with_params({"working_volume.near": 2.0}))   # what a node answers to ros2 param set
+    assert check_consistency(cfg.with_params({"working_volume.far": 1.0})) is None
+
+
+def test_without_a_volume_the_key_says_none(model_path):
+    from test_nodes_logic import Bus, Context, params, play
+    from pws_ros.bridge import msgbuild
+    from pws_ros.nodes.pipeline import PipelineNode
+
+    bus = Bus()
+    node = PipelineNode(Context(bus, "pipeline", **params(model_path)))
+    try:
+        play(bus, [1_700_000_000_000_000_000], lambda: bus.published["/certification"])
+        parsed = msgbuild.parse_certification(bus.published["/certification"][0])
+        assert all(v["working_volume"] == "none" for v in parsed.values())
+    finally:
+        node.close()
+        bus.close()
+
+
+@pytest.fixture
+def model_path(make_model_file):
+    return make_model_file(input_size=(24, 32))
+
+
+@pytest.mark.parametrize("render_factor", [0, 1])
+def test_a_volume_draws_measured_points_only(render_factor):
+    """With the depth fill on, the points whose depth was filled are never inside a volume (a row whose only
+    valid depth is a near hand would otherwise be filled at the hand's depth across the room): the renderer
+    draws the measured points inside, as the brute force selects them from the depth image itself."""
+    rng = np.random.default_rng(7)
+    cam = CameraIntrinsics(16, 12, 14.0, 15.0, 7.5, 5.5, "cam")
+    depth = np.zeros(cam.shape)                      # no return: the room beyond the sensor's range
+    depth[4:9, 3:9] = rng.uniform(0.6, 0.8, (5, 6))  # the hand
+    depth[4:9, 5] = 0.0                              # a hole inside it
+    depth[10:, :] = 3.0                              # a far floor, outside the volume
+    rgb = rng.random(cam.shape + (3,)).astype(np.float32)
+    cloud = cloud_from_rgbd(depth, rgb, cam, fill="row")
+    assert cloud.filled == int((depth == 0).sum())
+    im = make_imaging("surfel", cam, (3, 4), background=0.5, border=0, render_factor=render_factor, volume=WorkingVolume(0.0, 1.5),
+                      cloud=cloud)
+    measured = [(c - cam.cx) * depth[r, c] / cam.fx for r in range(12) for c in range(16) if 0 < depth[r, c] <= 1.5]
+    r = SurfelRenderer(cloud, im, "ry")
+    if render_factor == 0:
+        assert sorted(r.points_np[:, 0]) == pytest.approx(sorted(measured), abs=1e-12) and len(r.points_np) == 25
+    zero = r.render_native([0.0]).numpy()[0]
+    if render_factor == 0:   # at alpha = 0 the hand's measured pixels show their colour, everything else 0.5
+        want = np.where(((depth > 0) & (depth <= 1.5))[..., None], rgb, np.float32(0.5))
+        np.testing.assert_array_equal(zero, want)
+    assert config_from_params({"working_volume.far": 1.5}).background_value == 0.5   # automatic: mid-grey with a volume
+    assert config_from_params({}).background_value == 0.0 and config_from_params({"working_volume.far": 1.5, "background": 0.0}).background_value == 0.0
