@@ -143,12 +143,12 @@ def attach_labels(bag_path: Path, csv_path: Path, out: Path, *, classes: list[st
                      if t == GROUND_TRUTH_TOPIC or t == inputs.truth]
         require(not old_truth or replace, f"{bag_path} already has ground truth on {', '.join(old_truth)}: "
                                           f"pass --replace to drop it and write the labels of {csv_path}")
-        order: list[int] = []                 # the frame topic's header stamps, in message order
+        order: list[tuple[int, int]] = []     # (log time, header stamp) of the frame topic's messages, in order
         frame_ids: dict[int, str] = {}
         for m in bag.messages([frame_topic]):
             msg = bag.deserialize(m)
-            order.append(msgconv.header_stamp_ns(msg))
-            frame_ids.setdefault(order[-1], msgconv.frame_id_of(msg))
+            order.append((m.log_time_ns, msgconv.header_stamp_ns(msg)))
+            frame_ids.setdefault(order[-1][1], msgconv.frame_id_of(msg))
         stamps = sorted(frame_ids)
         require(bool(stamps), f"{bag_path}: no frame on {frame_topic}")
         shift = stamps[0] if relative else 0
@@ -165,7 +165,9 @@ def attach_labels(bag_path: Path, csv_path: Path, out: Path, *, classes: list[st
                     continue
                 if progress is not None:
                     progress.update(1)
-                stamp = next(next_stamp)
+                log_time, stamp = next(next_stamp, (None, 0))
+                if log_time != m.log_time_ns:   # not the first pass's order: decode this one again
+                    stamp = msgconv.header_stamp_ns(bag.deserialize(m))
                 row = labelled.get(stamp)
                 if row is None or stamp in done:
                     continue
