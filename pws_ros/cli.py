@@ -12,7 +12,8 @@ import sys
 from . import __version__
 from .core.errors import PwsError
 
-COMMANDS = ("plan", "render", "certify", "audit", "replay", "ceiling", "bench", "sim", "train", "export_model", "finetune")
+COMMANDS = ("plan", "render", "certify", "audit", "replay", "ceiling", "bench", "sim", "train", "export_model", "finetune",
+            "importing")
 
 DESCRIPTION = """\
 Certify that an image classifier keeps its prediction under camera motion, with Pixel-wise
@@ -31,6 +32,7 @@ examples:
   pws replay bags/demo --report /tmp/report                 # certify a rosbag2 recording
   pws export-model my_net.py:build --input-size 224x224 --classes classes.txt --imagenet --out my_net.pt
   pws finetune my_recording.mcap --model my_net.pt --sigma 0.25 --out my_net_s025.pt   # noise-robust, no labels
+  pws import frames my_clips --out my_recording --intrinsics 615,615,320,240   # RGB-D images + labels -> a recording
 run `pws COMMAND --help` for each command."""
 
 

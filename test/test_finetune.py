@@ -292,7 +292,7 @@ def _tiny_bench(tmp_path, extra=()):
     import cv2
 
     from pws_ros.core.model import save_model
-    from test_rgbd_sequence import tum_folder
+    from test_import_tum import tum_folder
 
     if not (tmp_path / "seq").exists():
         tum_folder(tmp_path / "seq", n=5)
@@ -316,7 +316,7 @@ def test_benchmark_script_runs_on_a_tiny_model(tmp_path, capsys, monkeypatch):
     from pws_ros.bench import finetune_bench as fb
     from pws_ros.bagio.reader import BagReader
 
-    from pws_ros.bench.rgbd_sequence import convert
+    from pws_ros.importing.tum import convert
 
     work = tmp_path / "work"
     args = _tiny_bench(tmp_path, ["--eval", str(tmp_path / "one"), "--certify-heldout", "1"])

@@ -20,12 +20,13 @@ with each file's by QoS too, and yields nothing where a recorder wrote different
 places (the rosbag2 talker test bags); here files are read one by one and matched by topic and type.
 
 :class:`BagWriter` writes a rosbag2 MCAP bag (``Writer(version=9)``, Jazzy definitions, zstd
-chunks) that opens with rosbags and with the ``mcap`` + ``mcap_ros2`` readers.
+chunks) that opens with rosbags and with the ``mcap`` + ``mcap_ros2`` readers; :func:`whole_bag`
+writes one that appears only when complete (``pws import``).
 """
 from __future__ import annotations
 
 from .common import BagMessage, TopicInfo
 from .reader import BagReader
-from .writer import BagWriter, mcap_decoded_messages, prepare_output
+from .writer import BagWriter, mcap_decoded_messages, prepare_output, whole_bag
 
-__all__ = ["BagMessage", "BagReader", "BagWriter", "TopicInfo", "mcap_decoded_messages", "prepare_output"]
+__all__ = ["BagMessage", "BagReader", "BagWriter", "TopicInfo", "mcap_decoded_messages", "prepare_output", "whole_bag"]

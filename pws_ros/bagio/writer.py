@@ -1,7 +1,9 @@
 """Writing (:class:`BagWriter`, :func:`prepare_output`) and an independent MCAP reader to check what was written."""
 from __future__ import annotations
 
+import os
 import shutil
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
@@ -15,6 +17,15 @@ def prepare_output(path: str | Path, overwrite: bool = False) -> Path:
     """Make room for a new bag directory at ``path``: it must not exist, unless ``overwrite`` and it is
     an old bag directory (then it is deleted). A file or a folder that does not look like a bag is
     never deleted. Missing parent folders are created."""
+    p = check_output(path, overwrite)
+    if p.exists() or p.is_symlink():
+        shutil.rmtree(p)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    return p
+
+
+def check_output(path: str | Path, overwrite: bool = False) -> Path:
+    """What :func:`prepare_output` refuses, without deleting or creating anything."""
     p = Path(path)
     if p.exists() or p.is_symlink():
         require(overwrite, f"output {p} already exists: choose another --out or pass --overwrite")
@@ -23,9 +34,31 @@ def prepare_output(path: str | Path, overwrite: bool = False) -> Path:
         bagish = all(e.is_file() and (e.name == "metadata.yaml" or storage_kind(e) is not None or e.suffix.lower() in (".mcap", ".db3", ".zstd"))
                      for e in entries)
         require(bagish, f"output {p} exists and is not a rosbag2 bag directory (it holds other files): refusing to overwrite it")
-        shutil.rmtree(p)
-    p.parent.mkdir(parents=True, exist_ok=True)
     return p
+
+
+@contextmanager
+def whole_bag(path: str | Path, *, overwrite: bool = False, typestore: Any = None) -> Iterator["BagWriter"]:
+    """``with whole_bag(out) as writer:`` a :class:`BagWriter` whose bag appears at ``out`` only when
+    the block ends without an exception. It is written in a hidden folder beside ``out``
+    (``.NAME.partial-PID/NAME``, so the storage file is already named after ``out``) and renamed to
+    ``out`` at the end; an existing ``out`` is refused (or, with ``overwrite``, replaced) before
+    anything is written. An exception (a bad input, Ctrl-C) deletes the hidden folder: ``out`` is
+    never half written. A SIGKILL leaves the hidden folder behind, never a partial ``out``."""
+    out = check_output(path, overwrite)
+    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    writer = BagWriter(tmp / out.name, typestore=typestore)
+    try:
+        writer.open()
+        yield writer
+        writer.close()
+        prepare_output(out, overwrite)
+        (tmp / out.name).rename(out)
+    finally:
+        writer.close()
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 class BagWriter:

@@ -12,7 +12,7 @@ radius next to the ceiling (the radius of a classifier that never changes its an
     python -m pws_ros.bench.finetune_bench SRC --work DIR [--sigmas 0.25,0.5] [--frames 300] \\
         [--eval BAG ...] [--certify-heldout 3] [--model lite0|MODEL.pt] [--device cpu|cuda] [--resume] [--json]
 
-``SRC``: a TUM-format folder (converted with :mod:`pws_ros.bench.rgbd_sequence` into ``DIR/sequence``)
+``SRC``: a TUM-format folder (converted with :mod:`pws_ros.importing.tum`, the code of ``pws import tum``, into ``DIR/sequence``)
 or a rosbag2 recording. The data stays outside the repository (fetch a sequence from the TUM RGB-D
 benchmark yourself, e.g. freiburg1_desk). Everything is written under ``DIR``: the exported original
 model, one tuned model and report per sigma, ``bench.json``.
@@ -61,7 +61,7 @@ def sequence_bag(src: Path, work: Path, frames: int | None) -> Path:
     require(src.exists(), f"sequence not found: {src}")
     if src.is_file() or (src / "metadata.yaml").exists() or any(src.glob("*.mcap")) or any(src.glob("*.db3")):
         return src
-    from .rgbd_sequence import convert
+    from ..importing.tum import convert
 
     out = work / "sequence"
     if not (out / "metadata.yaml").exists():

@@ -240,7 +240,8 @@ def demo_frames(T: Any, bag: Path | None = None, points: bool = False) -> list[t
             elif m.topic in (DEPTH, COLOR):
                 f[m.topic] = (msgconv.image_to_numpy(msg), msg.encoding)
             elif m.topic == "/pws/ground_truth":
-                f["label"] = int({kv.key: kv.value for kv in msg.status[0].values}["label"])
+                label = {kv.key: kv.value for kv in msg.status[0].values}.get("label", "")   # absent: a label by name only (pws import)
+                f["label"] = int(label) if label.lstrip("-").isdigit() else None
     out = []
     for stamp in sorted(frames):
         f = frames[stamp]

@@ -1,8 +1,22 @@
-"""The ground truth of the procedural world (``/pws/ground_truth``): per-stamp labels and the scene to regenerate."""
+"""The ground truth (``/pws/ground_truth``): per-stamp labels, and for the procedural world the scene to regenerate.
+
+The topic's layout (what ``pws sim record`` and ``pws import`` write, what ``pws replay --report``
+and ``pws finetune`` read): a ``diagnostic_msgs/DiagnosticArray`` per labelled frame, its header
+stamp the frame's stamp, holding one status named ``ground_truth`` whose ``values`` are strings:
+
+* ``class_name``: the label (a class name); replay and finetune match it with the model's class names;
+* ``label``: the class index in the model's classes (only where those classes are known: the sim
+  world's, or ``pws import --classes``); used when ``class_name`` is not one of the model's classes;
+* ``clip``, ``clip_index``, ``frame_index``, ``file`` (``pws import frames``): the clip the frame
+  belongs to (its folder, relative to the imported folder), the clip's position, the frame's position
+  in its clip, the colour image it came from;
+* ``scene_seed``, ``view_index``, ``width``, ``height``, ``samples_per_pixel`` (``pws sim``): enough
+  to regenerate the scene cloud.
+"""
 from __future__ import annotations
 
 import bisect
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 from ..bagio import BagReader
 from ..bridge import msgconv
@@ -30,6 +44,17 @@ def load_ground_truth(bag: BagReader, topic: str, warn: Callable[[str], None]) -
                 warn(f"ground truth on {topic}: a message could not be read ({exc}); such frames have no ground truth")
     return out
 
+
+
+def truth_message(types: Any, header: Any, values: Mapping[str, str], *, hardware_id: str) -> Any:
+    """The ``/pws/ground_truth`` DiagnosticArray of one frame (the layout above): ``values`` as the
+    status's key/value pairs, ``class_name`` also as its message."""
+    from ..bridge.msgbuild import level_value, make
+
+    kvs = [make(types.KeyValue, key=str(k), value=str(v)) for k, v in values.items()]
+    status = make(types.DiagnosticStatus, level=level_value(types, "OK"), name="ground_truth",
+                  message=str(values.get("class_name", "")), hardware_id=hardware_id, values=kvs)
+    return make(types.DiagnosticArray, header=header, status=[status])
 
 
 def truth_near(truth: dict[int, GroundTruth], stamps: list[int], stamp: int, tolerance_s: float) -> GroundTruth | None:

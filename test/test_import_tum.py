@@ -1,4 +1,4 @@
-"""The TUM-format converter (pws_ros.bench.rgbd_sequence), read back with the independent mcap reader."""
+"""The TUM-format converter (`pws import tum`, pws_ros.importing.tum), read back with the independent mcap reader."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,7 +7,14 @@ import cv2
 import numpy as np
 import pytest
 
-from pws_ros.bench.rgbd_sequence import TOPICS, main
+from pws_ros.cli import main as pws_main
+from pws_ros.importing.tum import TOPICS
+
+
+def main(argv: list[str]) -> int:
+    """`pws import tum SRC OUT [options]` (OUT given as --out)."""
+    src, out, *rest = argv
+    return pws_main(["import", "tum", src, "--out", out, "--quiet", *rest])
 
 
 def tum_folder(root: Path, n: int = 3, assoc: bool = True) -> tuple[list[float], list[np.ndarray], list[np.ndarray]]:
