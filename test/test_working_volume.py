@@ -9,6 +9,9 @@ and every brute-force frame inside a segment must lie within the production boun
 from __future__ import annotations
 
 import math
+import os
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -303,3 +306,72 @@ def test_a_volume_draws_measured_points_only(render_factor):
         np.testing.assert_array_equal(zero, want)
     assert config_from_params({"working_volume.far": 1.5}).background_value == 0.5   # automatic: mid-grey with a volume
     assert config_from_params({}).background_value == 0.0 and config_from_params({"working_volume.far": 1.5, "background": 0.0}).background_value == 0.0
+
+
+def test_finetune_trains_on_the_images_that_are_certified(model_path, tmp_path):
+    """pws finetune renders its training views through the certifier's imaging: with a working volume its
+    alpha = 0 view is the brute force's frame of the selected points (background 0.5 outside)."""
+    from types import SimpleNamespace
+
+    from pws_ros.bridge.engine import FrameCertifier
+    from pws_ros.finetune.cache import FramePreparer
+
+    cam = CameraIntrinsics(32, 24, 30.0, 30.0, 15.5, 11.5, "cam")
+    rng = np.random.default_rng(3)
+    depth = np.full(cam.shape, 2.0)
+    depth[6:18, 8:20] = rng.uniform(1.0, 1.3, (12, 12))
+    cloud = cloud_from_rgbd(depth, rng.random(cam.shape + (3,)).astype(np.float32), cam)
+    cfg = config_from_params({"model_path": str(model_path), "working_volume.far": 1.5, "axes": ["tz"]})
+    engine = FrameCertifier(cfg, log=lambda *a: None)
+    prep = FramePreparer(SimpleNamespace(views=0, seed=0), engine.model, engine, tmp_path, device="cpu", stop=None,
+                         warn=print, info=print)
+    imaging = engine.imaging_for(cam, cloud)
+    view = prep.render(cloud, imaging, [])[0]
+    pts, cols = reference_select(cloud.points, cloud.colors, 0.0, 1.5)
+    np.testing.assert_allclose(view, reference_frame(pts, cols, imaging, "tz", 0.0), atol=1e-6)
+    assert imaging.background == 0.5 and np.isclose(view, 0.5).any()
+
+
+@pytest.mark.rclpy
+@pytest.mark.slow
+@pytest.mark.parametrize("launch_file", ["pws.launch.py", "pws_nodes.launch.py"])
+def test_live_launches_certify_with_a_working_volume(launch_file, tmp_path, monkeypatch):
+    """ROS 2 (skipped without rclpy): each launch file with working_volume 0-3 m in its parameter file,
+    the demo frames played: every certification names the volume on every axis, and frames are certified."""
+    import json as _json
+
+    from pws_ros.bridge import msgbuild
+    from pws_ros.nodes.live import COLOR, DEPTH, DEPTH_INFO, INFO, Launch, Player, demo_frames, ros_env, wait_for
+    from test_live_flood import LAUNCHES
+
+    domain = 100 + (os.getpid() + len(launch_file)) % 50
+    env = ros_env(tmp_path, domain)
+    for k in ("ROS_DOMAIN_ID", "CYCLONEDDS_URI", "RMW_IMPLEMENTATION", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
+        monkeypatch.setenv(k, env[k])
+    monkeypatch.delenv("ROS_LOCALHOST_ONLY", raising=False)
+    config = tmp_path / "volume.yaml"
+    config.write_text("/**:\n  ros__parameters:\n    input_mode: rgbd\n    input_qos: reliable\n    n0: 16\n    n: 32\n"
+                      f"    model_path: {_json.dumps(str(Path(__file__).resolve().parents[1] / 'bags/models/classifier_sigma0.50.pt'))}\n"
+                      "    working_volume:\n      near: 0.0\n      far: 3.0\n")
+    launch = Launch(launch_file, {"config_file": str(config)}, tmp_path, env)
+    player = None
+    try:
+        assert wait_for(lambda: set(launch.nodes()) >= set(LAUNCHES[launch_file]) or launch.proc.poll() is not None, 60), launch.text()[-3000:]
+        player = Player(domain, {DEPTH: "Image", COLOR: "Image", INFO: "CameraInfo", DEPTH_INFO: "CameraInfo"}, "volume_player")
+        assert wait_for(lambda: player.subscribed((DEPTH, COLOR, INFO)), 60), launch.text()[-3000:]
+        demo = demo_frames(player.T)
+        t0 = time.time_ns() // 10**9 * 10**9
+        for k, (build, _label) in enumerate(demo[:3]):
+            stamp = t0 + (k + 1) * 10**9
+            for topic, msg in build(stamp):
+                player.publish(topic, msg)
+            assert wait_for(lambda: stamp in player.certified_stamps(), 240, 0.1), launch.text()[-3000:]
+        parsed = [msgbuild.parse_certification(m) for m in player.messages()]
+        assert len(parsed) == 3
+        assert all(v["working_volume"] == "depth 0-3 m" for p in parsed for v in p.values()), parsed
+        assert sum(v["level"] == 0 for p in parsed for v in p.values()) >= 1, parsed
+        assert "working volume depth 0-3 m" in launch.text()
+    finally:
+        if player is not None:
+            player.close()
+        launch.stop()
