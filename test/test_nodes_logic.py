@@ -301,32 +301,48 @@ def test_four_processes_match_the_pipeline(model_path, coverage):
         bus2.close()
 
 
-def test_four_processes_state_the_filled_points_as_the_pipeline(model_path):
-    """A depth image with 12 holes: the pipeline's certificates count 12 filled points, and so do the
-    four processes' (the count crosses the cloud topic in the pws_filled field and the plan bundle)."""
+def pipeline_and_four(model_path, publish, check=None, **extra) -> dict:
+    """The pipeline, then the four processes, each on a fresh bus with ``params(model_path, **extra)``:
+    ``publish(bus)`` plays the input, one certification is awaited, ``check(bus)`` runs before the nodes
+    close. ``{"pipeline" | "four": (the parsed certification, the certifying node's Context)}``."""
     from pws_ros.nodes.pipeline import PipelineNode
 
     got = {}
     for name in ("pipeline", "four"):
         bus = Bus()
         if name == "pipeline":
-            nodes, tick = [PipelineNode(Context(bus, "pipeline", **params(model_path)))], []
+            ctx = Context(bus, "pipeline", **params(model_path, **extra))
+            nodes, tick = [PipelineNode(ctx)], []
         else:
-            ctxs, nodes = four_nodes(bus, model_path)
-            tick = [ctxs["certifier"]]
+            ctxs, nodes = four_nodes(bus, model_path, **extra)
+            ctx, tick = ctxs["certifier"], [ctxs["certifier"]]
         try:
-            for topic, msg in frame_messages(T0, holes=True).items():
-                bus.publish(topic, msg)
+            publish(bus)
             assert wait_for(lambda: len(bus.published["/certification"]) == 1, tick=tick)
-            got[name] = msgbuild.parse_certification(bus.published["/certification"][0])
-            clouds = bus.published["/cloud"]
-            assert len(clouds) == 1 and [f.name for f in clouds[0].fields][-1] == "pws_filled"
-            assert int(cloudconv.cloud_from_pointcloud2(clouds[0]).cloud.filled) == 12
+            got[name] = (msgbuild.parse_certification(bus.published["/certification"][0]), ctx)
+            if check is not None:
+                check(bus)
             assert not bus.errors
         finally:
             for nd in nodes:
                 nd.close()
             bus.close()
+    return got
+
+
+def test_four_processes_state_the_filled_points_as_the_pipeline(model_path):
+    """A depth image with 12 holes: the pipeline's certificates count 12 filled points, and so do the
+    four processes' (the count crosses the cloud topic in the pws_filled field and the plan bundle)."""
+    def publish(bus):
+        for topic, msg in frame_messages(T0, holes=True).items():
+            bus.publish(topic, msg)
+
+    def check(bus):
+        clouds = bus.published["/cloud"]
+        assert len(clouds) == 1 and [f.name for f in clouds[0].fields][-1] == "pws_filled"
+        assert int(cloudconv.cloud_from_pointcloud2(clouds[0]).cloud.filled) == 12
+
+    got = {name: parsed for name, (parsed, _ctx) in pipeline_and_four(model_path, publish, check).items()}
     for axis in ("tx", "tz"):
         assert int(got["pipeline"][axis]["filled_points"]) == 12 == int(got["four"][axis]["filled_points"]), axis
         assert got["four"][axis]["level"] in (0, 1)

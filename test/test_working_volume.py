@@ -222,30 +222,16 @@ def test_the_nodes_record_the_volume_on_every_certificate_and_change_it_at_run_t
     1.2 m before a wall at 2 m) with working_volume 0-1.5 m: every certification names the volume, the four
     processes certify as the pipeline does, and the self-audit finds every bound holding. A change at run
     time goes through the nodes' own validation: a bad one is refused naming it."""
-    from test_nodes_logic import Bus, Context, four_nodes, params, play
-    from pws_ros.bridge import msgbuild
+    from test_nodes_logic import frame_messages, pipeline_and_four
     from pws_ros.bridge.config import check_consistency
-    from pws_ros.nodes.pipeline import PipelineNode
 
-    vol = {"working_volume.far": 1.5, "background": 0.5, "audit_every": 1}
-    stamps = [1_700_000_000_000_000_000]
-    got = {}
-    for name in ("pipeline", "four"):
-        bus = Bus()
-        if name == "pipeline":
-            ctx = Context(bus, "pipeline", **params(model_path, **vol))
-            nodes, tick = [PipelineNode(ctx)], []
-        else:
-            ctxs, nodes = four_nodes(bus, model_path, **vol)
-            tick = [ctxs["certifier"]]
-        try:
-            play(bus, stamps, lambda: bus.published["/certification"], tick=tick)
-            got[name] = msgbuild.parse_certification(bus.published["/certification"][0])
-            assert not bus.errors
-        finally:
-            for nd in nodes:
-                nd.close()
-            bus.close()
+    def publish(bus):
+        for topic, msg in frame_messages(1_700_000_000_000_000_000).items():
+            bus.publish(topic, msg)
+
+    runs = pipeline_and_four(model_path, publish, **{"working_volume.far": 1.5, "background": 0.5, "audit_every": 1})
+    got = {name: parsed for name, (parsed, _ctx) in runs.items()}
+    ctx = runs["pipeline"][1]
     for axis in ("tx", "tz"):
         for name in ("pipeline", "four"):
             v = got[name][axis]
