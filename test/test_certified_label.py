@@ -134,10 +134,10 @@ def test_pipeline_publishes_the_certified_labels_overlays_and_warns(bus, model_p
 
     # the second frame's tz radius cannot be certified at ±0.5 m: only the first frame is certified on every axis
     ctx = Context(bus, "pipeline", **params(model_path, publish_overlay=True, certified_label_timeout_s=5.0,
-                                            **{"radius.tx": 0.001, "radius.tz": 0.002}))
+                                            certification_to_diagnostics=True, **{"radius.tx": 0.001, "radius.tz": 0.002}))
     node = PipelineNode(ctx)
     now = [0.0]
-    node.labels.clock = lambda: now[0]
+    node.health.labels.clock = lambda: now[0]
     try:
         play(bus, [T0], lambda: bus.published["/certification"])
         ctx.config = ctx.config.with_params({"radius.tz": 0.5})
@@ -149,6 +149,9 @@ def test_pipeline_publishes_the_certified_labels_overlays_and_warns(bus, model_p
         assert labelled == [msgconv.stamp_to_ns(m.header.stamp) for m in certs if every_axis_certified(m)] == [T0]
         assert bus.published["/certified_label"][0].status[0].message == "c1"
         _check_overlays(bus, certs)
+        # certification_to_diagnostics: each certification also on /diagnostics (for diagnostic_aggregator)
+        forwarded = [m for m in bus.published["/diagnostics"] if m.status[0].name.startswith("pws/")]
+        assert [msgbuild.parse_certification(m) for m in forwarded] == [msgbuild.parse_certification(m) for m in certs]
         h = _health(bus, ctx)
         assert h["level"] == 0 and h["values"]["certified_labels"] == "1"
         assert int(h["values"]["overlays_published"]) + int(h["values"]["overlays_skipped"]) == 2
@@ -194,3 +197,36 @@ def test_four_processes_publish_the_certified_labels_and_overlays(bus, model_pat
 @pytest.fixture
 def model_path(make_model_file):
     return make_model_file(input_size=(24, 32))
+
+
+def test_the_aggregator_file_groups_the_statuses_the_nodes_publish():
+    """config/diagnostic_aggregator.yaml, with GenericAnalyzer's matching rules written out
+    (diagnostic_aggregator/src/generic_analyzer.cpp: ``startswith`` = a prefix, ``regex`` = std::regex_match):
+    the certification statuses go to PWS/Certification, every node's health to PWS/Nodes, nothing to both."""
+    import re
+    from pathlib import Path
+
+    import yaml
+
+    cfg = yaml.safe_load((Path(__file__).resolve().parents[1] / "config" / "diagnostic_aggregator.yaml").read_text())
+    group = cfg["analyzers"]["ros__parameters"]["pws"]
+    assert group["type"] == "diagnostic_aggregator/AnalyzerGroup" and group["path"] == "PWS"
+    cert_rule, health_rule = group["analyzers"]["certification"], group["analyzers"]["health"]
+    assert cert_rule["type"] == health_rule["type"] == "diagnostic_aggregator/GenericAnalyzer"
+
+    def in_certification(name):
+        return any(name.startswith(s) for s in cert_rule["startswith"])
+
+    def in_nodes(name):
+        return any(re.fullmatch(r, name) for r in health_rule["regex"])
+
+    header = msgbuild.make_header(T, STAMP, "cam")
+    certification = msgbuild.certificates_to_diagnostic_array(header, [cert(a) for a in ("tx", "ty", "tz", "rx", "ry", "rz")],
+                                                              node_name="pipeline", types=T, latency_ms=1.0)
+    for st in certification.status:
+        assert in_certification(st.name) and not in_nodes(st.name)
+    for node in ("pipeline", "pipeline_0", "pipeline_11", "cloud_listener", "partition_planner", "projector", "certifier"):
+        (st,) = msgbuild.health_status(header, node_name=node, types=T, rate_hz=1.0, frames_in=1, frames_processed=1,
+                                       frames_dropped=0, device="cpu").status
+        assert in_nodes(st.name) and not in_certification(st.name)
+    assert not in_nodes("camera_driver: health") and not in_certification("/camera/temperature")

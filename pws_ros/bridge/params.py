@@ -212,6 +212,10 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("certified_label_timeout_s", 10.0, "the /diagnostics health status WARNs when no frame has been certified on "
               "every axis (no 'certified_label') for longer than this, wall time since the last one (or since the first "
               "frame); 0 = never", range=(0.0, 86400.0), nodes=_CERT, unit="s"),
+    ParamSpec("certification_to_diagnostics", False, "also publish each frame's certification (the statuses pws/<axis>) on "
+              "/diagnostics, beside the health statuses, for diagnostic_aggregator and rqt_robot_monitor "
+              "(config/diagnostic_aggregator.yaml groups both in one tree); off: /diagnostics holds the health statuses only",
+              nodes=_CERT),
     ParamSpec("health_period_s", 1.0, "period of the /diagnostics health status", range=(0.05, 3600.0), read_only=True, nodes=_ALL, unit="s"),
     ParamSpec("assembly_timeout_s", 30.0, "four-process mode: time to wait for every frame of a plan before declaring it incomplete",
               range=(0.01, 86400.0), nodes=("certifier",), unit="s"),

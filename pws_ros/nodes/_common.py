@@ -177,17 +177,28 @@ class StaticExtrinsic:
 
 
 class HealthPublisher:
-    """Publishes ``<node>: health`` on ``/diagnostics`` every ``health_period_s``. A certifying node also
-    gives its ``labels`` (:class:`~pws_ros.bridge.outputs.CertifiedLabelWatch`: a WARN past
-    ``certified_label_timeout_s``, and its keys) and ``overlay`` (:class:`OverlayOutput`: its keys)."""
+    """Publishes ``<node>: health`` on ``/diagnostics`` every ``health_period_s``. A certifying node
+    (``certifying``) tells it each frame it published (:meth:`published`): its ``labels``
+    (:class:`~pws_ros.bridge.outputs.CertifiedLabelWatch`) give a WARN past ``certified_label_timeout_s``
+    and their keys; with ``certification_to_diagnostics`` the frame's certification also goes out on
+    ``/diagnostics``. ``overlay`` (:class:`OverlayOutput`) adds its keys."""
 
-    def __init__(self, ctx: Any, counters: Callable[[], dict[str, Any]], *, labels: Any = None, overlay: Any = None):
+    def __init__(self, ctx: Any, counters: Callable[[], dict[str, Any]], *, certifying: bool = False, overlay: Any = None):
         self.ctx = ctx
         self.counters = counters
-        self.labels = labels
+        self.labels = outputs.CertifiedLabelWatch() if certifying else None
         self.overlay = overlay
         self.pub = ctx.publisher(ctx.types.DiagnosticArray, "/diagnostics", kind="reliable", depth=10)
         self.timer = ctx.timer(ctx.config.health_period_s, self.publish)
+
+    def published(self, frame_outputs: list[tuple[str, Any]]) -> None:
+        """A frame's :func:`~pws_ros.bridge.outputs.frame_outputs`, just published."""
+        if self.labels is not None:
+            self.labels.saw(frame_outputs)
+        if self.ctx.config.certification_to_diagnostics:
+            for rel, msg in frame_outputs:
+                if rel == outputs.CERTIFICATION:
+                    self.pub.publish(msg)
 
     def publish(self) -> None:
         c = dict(self.counters())

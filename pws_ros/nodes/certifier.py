@@ -55,7 +55,6 @@ class CertifierNode(WorkerNode):
         self.bad_messages = 0
         self.last_frame_error = ""
         self.pubs = outputs.OutputPublishers(ctx, (outputs.CERTIFICATION, outputs.CERTIFIED_LABEL, outputs.MARKERS))
-        self.labels = outputs.CertifiedLabelWatch()
         self.overlay = OverlayOutput(ctx)
         self.worker = Worker("pws-certifier", self._process, ctx.log)
         frames_depth = cfg.frames_qos_depth
@@ -70,7 +69,7 @@ class CertifierNode(WorkerNode):
             sub(T.String, "rendered/errors", self._on_error, max(10, cfg.output_qos_depth)),
         ]
         self.timer = ctx.timer(POLL_S, self._poll)
-        self.health = HealthPublisher(ctx, self._counters, labels=self.labels, overlay=self.overlay)
+        self.health = HealthPublisher(ctx, self._counters, certifying=True, overlay=self.overlay)
 
     def _on_change(self, cfg: Any) -> None:
         self.assembler.timeout_s = cfg.assembly_timeout_s
@@ -205,7 +204,7 @@ class CertifierNode(WorkerNode):
             latency_ms=(self.ctx.now_ns() - result.stamp_ns) / 1e6, compute_ms=result.compute_ms, switches=switches,
             result=result)
         self.pubs.publish(out)
-        self.labels.saw(out)
+        self.health.published(out)
 
     def _counters(self) -> dict[str, Any]:
         w = self.worker

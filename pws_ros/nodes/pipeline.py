@@ -47,13 +47,12 @@ class PipelineNode(WorkerNode):
         self.engine = FrameCertifier(ctx.config, log=ctx.log)  # loads the model now (PwsError -> exit 2)
         self.pubs = outputs.OutputPublishers(ctx, (outputs.CERTIFICATION, outputs.CERTIFIED_LABEL, outputs.MARKERS, outputs.CLOUD,
                                                    outputs.CLOUD_INFO, outputs.PREVIEW), axes=ctx.config.axes)
-        self.labels = outputs.CertifiedLabelWatch()
         self.overlay = OverlayOutput(ctx)
         self.frame_errors = 0
         self.last_frame_error = ""
         self.worker = Worker("pws-pipeline", self._process, ctx.log)
         self.frontend = InputFrontend(ctx, self._on_frame)
-        self.health = HealthPublisher(ctx, self._counters, labels=self.labels, overlay=self.overlay)
+        self.health = HealthPublisher(ctx, self._counters, certifying=True, overlay=self.overlay)
         coverage = f"coverage {ctx.config.coverage}, " if ctx.config.method != "cms" else ""  # cms has no coverage rule
         ctx.log("info", f"pipeline ready: axes {', '.join(ctx.config.axes)}, method {ctx.config.method}, "
                         f"{coverage}device {self.engine.device}")
@@ -104,7 +103,7 @@ class PipelineNode(WorkerNode):
             compute_ms=compute_ms, switches=outputs.OutputSwitches.from_config(self.engine.config),  # this frame's config
             frame=frame, result=result)
         self.pubs.publish(out)
-        self.labels.saw(out)
+        self.health.published(out)
         self.overlay.submit(raw.header, raw.stamp_ns, certs, view or (lambda: None))
 
     def _counters(self) -> dict[str, Any]:
