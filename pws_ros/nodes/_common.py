@@ -233,6 +233,9 @@ class OverlayOutput:
 
     def update(self, cfg: Any) -> None:
         if cfg.publish_overlay and self.pub is None:
+            from ..bridge.overlay import draw_overlay
+
+            draw_overlay(None, [])   # OpenCV's first drawing (about 50 ms) now, not beside the first frame
             self.pub = self.ctx.publisher(self.ctx.types.Image, outputs.OVERLAY)
             self.worker = Worker("pws-overlay", self._draw, self.ctx.log)
 
