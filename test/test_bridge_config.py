@@ -177,7 +177,7 @@ def test_docs_ros2_is_in_sync_with_the_table_and_schema():
         assert f"| `{key}` |" in text
     assert ", ".join(f"`{k}`" for k in DIAGNOSTIC_EXTRA_KEYS) in " ".join(text.split())
     for topic in ("certification", "certification/markers", "plan/poses/<axis>", "rendered/frames", "rendered/bounds",
-                  "rendered/errors", "rendered/preview", "/diagnostics"):
+                  "rendered/errors", "rendered/preview", "/diagnostics", "certified_label", "certification/overlay"):
         assert f"`{topic}`" in text
 
 

@@ -227,4 +227,7 @@ def test_replay_writes_every_frame_in_the_published_order(tmp_path, monkeypatch,
         topics = [topic.lstrip("/") for t, topic in written if t == stamp]
         k = topics.count("rendered/preview")
         assert k >= 2  # every 8th frame and the alpha = 0 frame
-        assert topics == PIPELINE_TOPICS[:4] + ["rendered/preview"] * k + PIPELINE_TOPICS[-2:], topics
+        rec = next(r for r in res.records if r.stamp_ns == stamp)
+        every_axis = all(c.status == "certified" for c in rec.certificates) and len({c.label for c in rec.certificates}) == 1
+        label = ["certified_label"] if every_axis else []   # before the certification, for a frame certified on every axis
+        assert topics == PIPELINE_TOPICS[:4] + ["rendered/preview"] * k + PIPELINE_TOPICS[-2:-1] + label + PIPELINE_TOPICS[-1:], topics

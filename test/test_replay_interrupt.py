@@ -1,5 +1,5 @@
-"""Crash-safe output: `pws replay` stopped by SIGTERM closes a bag that independent readers read up to
-the last finished frame and says it was interrupted; a writer killed without any clean-up
+"""Crash-safe output: `pws replay` stopped by SIGTERM closes a bag (and a --video) that independent readers
+read up to the last finished frame and says it was interrupted; a writer killed without any clean-up
 (SIGKILL-like) still leaves every flushed frame readable; signals never cut a frame's writes."""
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ def test_sigterm_closes_a_readable_bag_and_a_summary_marked_interrupted(make_mod
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "pws_ros.cli", "replay", str(DEMO), "--out", str(out), "--axes", "tz", "--radius", "tz=2mm",
            "--n0", "16", "--n", "256", "--model", str(model), "--progress-interval", "0", "--json",
-           "--report", str(tmp_path / "report")]
+           "--report", str(tmp_path / "report"), "--video", str(tmp_path / "v.mp4")]
     proc = subprocess.Popen(cmd, cwd=tmp_path, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     err_lines: list[str] = []
     first_frame = threading.Event()
@@ -77,6 +77,16 @@ def test_sigterm_closes_a_readable_bag_and_a_summary_marked_interrupted(make_mod
     assert summary["interrupted"] == "SIGTERM" and summary["exit_code"] == 143 and 1 <= done < 8  # bags/demo has 8 frames
     assert "interrupted by SIGTERM" in summary["title"]
     assert json.loads((tmp_path / "report" / "summary.json").read_text())["interrupted"] == "SIGTERM"
+    # --video: the overlay of every frame done, renamed from its temporary name at the clean close
+    import cv2
+
+    cap = cv2.VideoCapture(str(tmp_path / "v.mp4"))
+    pictures = 0
+    while cap.read()[0]:
+        pictures += 1
+    cap.release()
+    assert pictures == done and summary["video"] == {"path": str(tmp_path / "v.mp4"), "frames": done}
+    assert not list(tmp_path.glob(".v.partial*"))
     # the independent mcap reader: one complete certification per frame done, nothing of the dropped frame
     certs = _mcap_certifications(out)
     assert len(certs) == done and all(len(c.status) == 1 and c.status[0].name.endswith("tz") for c in certs)

@@ -1,5 +1,5 @@
-"""Certificates -> ``diagnostic_msgs/DiagnosticArray`` and back, RViz/Foxglove text markers, and the
-``/diagnostics`` health status of a node (builders take the ``types`` namespace of
+"""Certificates -> ``diagnostic_msgs/DiagnosticArray`` and back, the ``certified_label`` message of a frame
+certified on every axis, RViz/Foxglove text markers, and the ``/diagnostics`` health status of a node (builders take the ``types`` namespace of
 :mod:`pws_ros.bridge.msgtypes`).
 
 Certification schema (``diagnostic_msgs/DiagnosticArray`` on ``certification``): header = the
@@ -186,6 +186,45 @@ def parse_certification(msg: Any) -> dict[str, dict[str, Any]]:
     return out
 
 
+# ---- the certified label ------------------------------------------------------------------
+
+CERTIFIED_LABEL_STATUS = "pws/certified_label"
+CERTIFIED_LABEL_KEYS: tuple[str, ...] = ("label", "class_name", "p_a_lower", "frame_alpha", "axes")
+
+
+def certified_label(certs: Sequence[Certificate]) -> Certificate | None:
+    """The certificate of the frame's label when the frame is certified on **every** axis at its requested
+    radius with **one** label (the first axis' certificate), else None (no axis, one not certified,
+    abstained or failed, or axes that certified different labels)."""
+    if not certs or any(c.status != STATUS_CERTIFIED or not c.certified for c in certs):
+        return None
+    return certs[0] if len({int(c.label) for c in certs}) == 1 else None
+
+
+def certified_label_array(header: Any, certs: Sequence[Certificate], *, node_name: str, types: Any) -> Any:
+    """The ``certified_label`` message of a frame certified on every axis (:func:`certified_label`), else None.
+
+    Header = the source header; one ``DiagnosticStatus`` named :data:`CERTIFIED_LABEL_STATUS`, level OK,
+    ``message`` = the class name (the label index when the model has no names), ``hardware_id`` = the
+    source frame id, ``values``: :data:`CERTIFIED_LABEL_KEYS` (``p_a_lower`` the least over the axes,
+    ``frame_alpha`` the risk of the whole statement, ``axes`` comma-separated), then ``radius.<axis>``
+    (the certified radius, m or rad) per axis in axis order, then ``node``.
+    """
+    cert = certified_label(certs)
+    if cert is None:
+        return None
+    pairs: list[tuple[str, Any]] = [
+        ("label", int(cert.label)), ("class_name", cert.class_name), ("p_a_lower", min(c.min_p_a_lower for c in certs)),
+        ("frame_alpha", float(cert.frame_alpha if cert.frame_alpha is not None else cert.alpha)),
+        ("axes", ",".join(c.axis for c in certs)),
+        *((f"radius.{c.axis}", float(c.radius)) for c in certs), ("node", node_name),
+    ]
+    st = make(types.DiagnosticStatus, level=level_value(types, "OK"), name=CERTIFIED_LABEL_STATUS,
+              message=cert.class_name or str(int(cert.label)), hardware_id=str(getattr(header, "frame_id", "") or ""),
+              values=[make(types.KeyValue, key=k, value=_fmt(v)) for k, v in pairs])
+    return make(types.DiagnosticArray, header=header, status=[st])
+
+
 # ---- RViz / Foxglove markers --------------------------------------------------------------
 
 _LEVEL_COLORS = {"OK": (0.1, 0.9, 0.1), "WARN": (1.0, 0.8, 0.0), "ERROR": (1.0, 0.15, 0.15)}
@@ -253,6 +292,7 @@ def health_status(header: Any, *, node_name: str, types: Any, rate_hz: float, fr
     return make(types.DiagnosticArray, header=header, status=[st])
 
 
-__all__ = ["DIAGNOSTIC_EXTRA_KEYS", "DIAGNOSTIC_KEYS", "LEVEL_FOR_STATUS", "STATUS_NAME_PREFIX", "certificate_message",
-           "certificate_values", "certificates_to_diagnostic_array", "diagnostic_array_to_dicts", "health_status", "level_to_int",
-           "level_value", "marker_text", "markers_for", "parse_certification"]
+__all__ = ["CERTIFIED_LABEL_KEYS", "CERTIFIED_LABEL_STATUS", "DIAGNOSTIC_EXTRA_KEYS", "DIAGNOSTIC_KEYS", "LEVEL_FOR_STATUS",
+           "STATUS_NAME_PREFIX", "certificate_message", "certificate_values", "certificates_to_diagnostic_array", "certified_label",
+           "certified_label_array", "diagnostic_array_to_dicts", "health_status", "level_to_int", "level_value", "marker_text",
+           "markers_for", "parse_certification"]

@@ -99,6 +99,7 @@ class FrameResult:
     camera: CameraIntrinsics | None = None                     # the render camera
     timings: dict[str, float] = field(default_factory=dict)    # seconds: total, and "<axis>" per axis
     previews: list[tuple[str, int, np.ndarray]] = field(default_factory=list)  # (axis, index, uint8 RGB)
+    imaging: Any = None                                        # the frame's core.imaging.Imaging (None: none was made)
 
     @property
     def compute_ms(self) -> dict[str, float]:
@@ -426,7 +427,8 @@ class FrameCertifier:
                 certs[-1].filled_points = int(bundle.filled_points)   # as the pipeline: about the cloud with filled depth
             timings[ax.axis] = time.perf_counter() - t1
         timings["total"] = time.perf_counter() - t0
-        return FrameResult(frame.stamp_ns, bundle.frame_id if bundle else "", certs, plans, bundle.camera if bundle else None, timings)
+        return FrameResult(frame.stamp_ns, bundle.frame_id if bundle else "", certs, plans, bundle.camera if bundle else None, timings,
+                           imaging=bundle.imaging if bundle else None)
 
     # ---- all stages in memory ----
     def certify_axis(self, cloud: Cloud, imaging: Any, axis: str, dense_cloud: Cloud | None = None,
@@ -527,7 +529,7 @@ class FrameCertifier:
                 timings[axis] = time.perf_counter() - t1
         timings["total"] = time.perf_counter() - t0
         return FrameResult(int(stamp_ns), frame_id or intr.frame_id, certs, plans,
-                           imaging.camera if imaging is not None else None, timings, previews)
+                           imaging.camera if imaging is not None else None, timings, previews, imaging)
 
     def _record_budget(self, cert: Certificate, sizes: Sizes, budget: float, spent: float) -> None:
         """What the certificate rests on under a time budget: ``bounds["time_budget"]`` (the frame's budget, the

@@ -14,9 +14,10 @@ from ..core.cloud import Cloud
 from ..core.errors import PwsError, require
 from ..core.motion import camera_pose
 from .cloudconv import FILLED_FIELD
-from .diagnostics import (DIAGNOSTIC_EXTRA_KEYS, DIAGNOSTIC_KEYS, LEVEL_FOR_STATUS, STATUS_NAME_PREFIX, certificate_message,
-                          certificate_values, certificates_to_diagnostic_array, diagnostic_array_to_dicts, health_status,
-                          level_to_int, level_value, marker_text, markers_for, parse_certification)
+from .diagnostics import (CERTIFIED_LABEL_KEYS, CERTIFIED_LABEL_STATUS, DIAGNOSTIC_EXTRA_KEYS, DIAGNOSTIC_KEYS, LEVEL_FOR_STATUS,
+                          STATUS_NAME_PREFIX, certificate_message, certificate_values, certificates_to_diagnostic_array,
+                          certified_label, certified_label_array, diagnostic_array_to_dicts, health_status, level_to_int,
+                          level_value, marker_text, markers_for, parse_certification)
 from .msgtypes import (MESSAGE_TYPES, copy_header, identity_pose, make, make_header, make_pose, make_time, quaternion_from_matrix,
                        rosbags_types)
 
@@ -130,8 +131,9 @@ def plan_to_pose_array(header: Any, plan: Any, types: Any) -> Any:
 
 
 __all__ = [
-    "DIAGNOSTIC_EXTRA_KEYS", "DIAGNOSTIC_KEYS", "LEVEL_FOR_STATUS", "MESSAGE_TYPES", "STATUS_NAME_PREFIX", "camera_info_from_intrinsics",
-    "certificate_message", "certificate_values", "certificates_to_diagnostic_array", "cloud_to_pointcloud2", "copy_header",
+    "CERTIFIED_LABEL_KEYS", "CERTIFIED_LABEL_STATUS", "DIAGNOSTIC_EXTRA_KEYS", "DIAGNOSTIC_KEYS", "LEVEL_FOR_STATUS", "MESSAGE_TYPES",
+    "STATUS_NAME_PREFIX", "camera_info_from_intrinsics", "certificate_message", "certificate_values",
+    "certificates_to_diagnostic_array", "certified_label", "certified_label_array", "cloud_to_pointcloud2", "copy_header",
     "diagnostic_array_to_dicts", "health_status", "identity_pose", "image_from_numpy", "level_to_int", "level_value", "make",
     "make_header", "make_pose", "make_time", "marker_text", "markers_for", "pack_rgb", "parse_certification", "plan_to_pose_array",
     "quaternion_from_matrix", "rosbags_types",

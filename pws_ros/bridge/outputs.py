@@ -8,8 +8,10 @@ it to its bag. Topics are relative (``certification``, ...): the node's namespac
 namespace is passed.
 
 Order (docs/ros2.md, "Outputs"): ``cloud``, ``cloud/camera_info``, ``plan/poses/<axis>`` (in plan
-order, i.e. config axis order), ``rendered/preview`` (in the engine's order), ``certification/markers``
-and ``certification`` **last**: when a frame's certification arrives, everything else it publishes is out.
+order, i.e. config axis order), ``rendered/preview`` (in the engine's order), ``certification/markers``,
+``certified_label`` and ``certification`` **last**: when a frame's certification arrives, everything else it
+publishes is out. (The overlay image, ``certification/overlay``, is drawn after the certification is out,
+by the nodes' overlay thread: :class:`pws_ros.nodes._common.OverlayOutput`; not part of this list.)
 
 What is in the list:
 
@@ -19,12 +21,15 @@ What is in the list:
 - a ``result`` (:class:`~pws_ros.bridge.engine.FrameResult`): one ``plan/poses/<axis>`` per planned
   axis when ``switches.poses``, its previews when ``switches.preview``;
 - a converted frame or a result: the markers when ``switches.markers``;
+- a frame certified on every axis with one label (:func:`~pws_ros.bridge.diagnostics.certified_label`): its
+  ``certified_label`` message when ``switches.certified_label``;
 - always: the certification.
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 from ..core.result import STATUS_ERROR, Certificate
 from . import msgbuild
@@ -35,11 +40,13 @@ CLOUD = "cloud"
 CLOUD_INFO = "cloud/camera_info"
 POSES = "plan/poses/{axis}"
 PREVIEW = "rendered/preview"
+CERTIFIED_LABEL = "certified_label"
+OVERLAY = "certification/overlay"
 
 # message class (attribute of a ``types`` namespace) of each output topic
 TOPIC_TYPES: dict[str, str] = {
     CLOUD: "PointCloud2", CLOUD_INFO: "CameraInfo", POSES: "PoseArray", PREVIEW: "Image",
-    MARKERS: "MarkerArray", CERTIFICATION: "DiagnosticArray",
+    MARKERS: "MarkerArray", CERTIFIED_LABEL: "DiagnosticArray", CERTIFICATION: "DiagnosticArray", OVERLAY: "Image",
 }
 _POSES_PREFIX = POSES.split("{")[0]
 
@@ -58,6 +65,7 @@ class OutputSwitches:
     markers: bool = True
     poses: bool = True
     preview: bool = False
+    certified_label: bool = True
 
     @classmethod
     def from_config(cls, cfg: Any) -> "OutputSwitches":
@@ -87,9 +95,47 @@ def frame_outputs(types: Any, header: Any, certificates: Sequence[Certificate], 
                 out.append((PREVIEW, msgbuild.image_from_numpy(header, img, types)))
     if (frame is not None or result is not None) and switches.markers:
         out.append((MARKERS, msgbuild.markers_for(header, certificates, types)))
+    label = msgbuild.certified_label_array(header, certificates, node_name=node_name, types=types) if switches.certified_label else None
+    if label is not None:
+        out.append((CERTIFIED_LABEL, label))
     out.append((CERTIFICATION, msgbuild.certificates_to_diagnostic_array(
         header, certificates, node_name=node_name, types=types, latency_ms=latency_ms, compute_ms=compute_ms)))
     return out
+
+
+class CertifiedLabelWatch:
+    """How long it has been since the last ``certified_label`` (a frame certified on every axis): the nodes'
+    health status WARNs past ``certified_label_timeout_s``. The clock is the wall (monotonic) clock, as the
+    health timer's, and starts with the first frame a node publishes: with no input at all nothing is
+    said here (``frames_in`` says it). :meth:`saw` takes each frame's :func:`frame_outputs` list."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic):
+        self.clock = clock
+        self.count = 0                       # certified_label messages published
+        self.since: float | None = None      # clock of the last one (of the first frame while there is none)
+
+    def saw(self, outputs: Sequence[tuple[str, Any]]) -> None:
+        if any(rel == CERTIFIED_LABEL for rel, _msg in outputs):
+            self.count += 1
+            self.since = self.clock()
+        elif self.since is None:
+            self.since = self.clock()
+
+    def age_s(self) -> float:
+        """Seconds since the last certified label (since the first frame when none yet); nan before any frame."""
+        return float("nan") if self.since is None else self.clock() - self.since
+
+    def warning(self, timeout_s: float) -> str:
+        """The health WARN text past ``timeout_s`` (0: never), else ""."""
+        age = self.age_s()
+        if not timeout_s > 0 or not age > timeout_s:
+            return ""
+        when = f"for {age:.1f} s" if self.count else f"in the {age:.1f} s since the first frame"
+        return f"no frame certified on every axis {when} (certified_label_timeout_s {timeout_s:g})"
+
+    def counters(self) -> dict[str, Any]:
+        """The health status' keys: ``certified_labels`` and ``since_certified_label_s``."""
+        return {"certified_labels": self.count, "since_certified_label_s": round(self.age_s(), 3)}
 
 
 def frame_error(certificates: Sequence[Certificate]) -> str:
@@ -134,5 +180,5 @@ class OutputPublishers:
                 pub.publish(msg)
 
 
-__all__ = ["CERTIFICATION", "CLOUD", "CLOUD_INFO", "MARKERS", "OutputPublishers", "OutputSwitches", "POSES", "PREVIEW",
-           "TOPIC_TYPES", "frame_error", "frame_outputs", "summary_line", "topic_type"]
+__all__ = ["CERTIFICATION", "CERTIFIED_LABEL", "CertifiedLabelWatch", "CLOUD", "CLOUD_INFO", "MARKERS", "OVERLAY", "OutputPublishers", "OutputSwitches",
+           "POSES", "PREVIEW", "TOPIC_TYPES", "frame_error", "frame_outputs", "summary_line", "topic_type"]

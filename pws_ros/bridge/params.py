@@ -217,6 +217,17 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("publish_preview", True, "publish a decimated 'rendered/preview' Image (rgb8) for humans", nodes=("projector", "pipeline")),
     ParamSpec("preview_every", 25, "publish every k-th rendered frame of a plan on rendered/preview (the alpha = 0 frame always)",
               range=(1, 1_000_000), nodes=("projector", "pipeline")),
+    ParamSpec("publish_overlay", False, "publish 'certification/overlay' (Image rgb8, the frame's header): the classifier's "
+              "alpha = 0 view scaled up, its label, p_A and one bar per axis (the certified share of the requested radius, "
+              "green OK, orange WARN, red ERROR), for rviz2 or any image viewer; drawn by a thread of its own after the "
+              "certification is out, the newest frame only (skipped, never queued, when it is behind)", nodes=_CERT),
+    ParamSpec("certified_label_timeout_s", 10.0, "the /diagnostics health status WARNs when no frame has been certified on "
+              "every axis (no 'certified_label') for longer than this, wall time since the last one (or since the first "
+              "frame); 0 = never", range=(0.0, 86400.0), nodes=_CERT, unit="s"),
+    ParamSpec("certification_to_diagnostics", False, "also publish each frame's certification (the statuses pws/<axis>) on "
+              "/diagnostics, beside the health statuses, for diagnostic_aggregator and rqt_robot_monitor "
+              "(config/diagnostic_aggregator.yaml groups both in one tree); off: /diagnostics holds the health statuses only",
+              nodes=_CERT),
     ParamSpec("health_period_s", 1.0, "period of the /diagnostics health status", range=(0.05, 3600.0), read_only=True, nodes=_ALL, unit="s"),
     ParamSpec("assembly_timeout_s", 30.0, "four-process mode: time to wait for every frame of a plan before declaring it incomplete",
               range=(0.01, 86400.0), nodes=("certifier",), unit="s"),

@@ -37,8 +37,15 @@ PlotJuggler, rosbags, the mcap tools):
   certification/markers  visualization_msgs/MarkerArray (text per axis; --no-markers to omit)
   plan/poses/<axis>      geometry_msgs/PoseArray, the partition camera poses (--no-poses to omit)
   cloud, cloud/camera_info   the one-frame cloud and its camera (--write-cloud)
+  certified_label        diagnostic_msgs/DiagnosticArray, only for a frame certified on every axis
+                         with one label: one status `pws/certified_label`, message = the class name
   rendered/preview       every --preview-every-th rendered frame, rgb8 (--preview)
   the input topics       copied unchanged, at their recorded log time (--copy-inputs)
+
+--video FILE.mp4 (or .avi, or a folder for one PNG per frame) writes, for every frame, the picture the
+nodes publish on certification/overlay: what the classifier saw at the recorded pose, its label and
+p_A, and one bar per axis, the certified share of the requested radius (green certified, orange not,
+red error); written under a temporary name and renamed when the replay ends (also when stopped).
 
 It shows progress on stderr (a bar with ETA on a terminal; else a plain line every --progress-interval
 seconds with frames done, rate, ETA and the last results; --quiet hides it) and prints a summary: frames seen,
@@ -73,6 +80,7 @@ examples:
       --color-topic /camera/color/image_raw --info-topic /camera/color/camera_info --realtime
   pws replay bags/demo --method pws          # the entire cloud, regenerated from the ground truth
   pws replay bags/demo --json --quiet > summary.json
+  pws replay bags/demo --no-output --video /tmp/demo.mp4          # the overlay of every frame, to watch
   pws replay bags/demo --workers 2 --out /tmp/demo_out --overwrite   # frames as Ray tasks (pip install 'pws_ros[ray]')"""
 
 _UNIT_SCALE = {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "rad": 1.0, "deg": math.pi / 180.0, "°": math.pi / 180.0}
@@ -160,6 +168,10 @@ def register(subparsers) -> None:
     o.add_argument("--no-compression", action="store_true", help="MCAP chunks without zstd")
     o.add_argument("--report", default=None, metavar="DIR", help="write DIR/frames.csv (per frame and axis), DIR/summary.json, "
                    "DIR/certified_accuracy_vs_radius.png and DIR/frames.png (radius and latency over time)")
+    o.add_argument("--video", default=None, metavar="PATH",
+                   help="write the overlay picture of every frame (the view, label, p_A and a bar per axis; as the nodes' "
+                        "certification/overlay) to PATH: a .mp4 or .avi video, or a folder (no suffix) of PNGs")
+    o.add_argument("--video-fps", type=float, default=None, metavar="F", help="frames per second of the --video file (default 10)")
     add_output_args(o, "print the summary as JSON on stdout instead of the table", "no progress (bar or lines) and no info lines (warnings and the summary still print)")
     o.add_argument("--progress-interval", type=float, default=None, metavar="S",
                    help="when stderr is not a terminal: one progress line (frames done, rate, ETA, last results) every S seconds "
@@ -265,6 +277,15 @@ def build_config(args: argparse.Namespace):
     return override_config(cfg, params)
 
 
+def video_options(args: argparse.Namespace) -> dict[str, Any]:
+    """``video`` and ``video_fps`` of ReplayOptions from ``--video`` / ``--video-fps``."""
+    require(args.video_fps is None or args.video, "--video-fps needs --video PATH")
+    out: dict[str, Any] = {"video": Path(args.video).expanduser()} if args.video else {}
+    if args.video_fps is not None:
+        out["video_fps"] = args.video_fps
+    return out
+
+
 def options_from_args(args: argparse.Namespace):
     from ..replay import ReplayOptions
 
@@ -278,7 +299,7 @@ def options_from_args(args: argparse.Namespace):
         max_frames=args.max_frames,
         realtime=args.realtime, copy_inputs=args.copy_inputs, write_cloud=args.write_cloud, preview=args.preview,
         markers=not args.no_markers, poses=not args.no_poses, namespace=args.namespace, compress=not args.no_compression,
-        report_dir=Path(args.report) if args.report else None, quiet=args.quiet, **interval)
+        report_dir=Path(args.report) if args.report else None, quiet=args.quiet, **interval, **video_options(args))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -302,6 +323,9 @@ def run(args: argparse.Namespace) -> int:
         print(result.table())
         if result.report_files:
             print(f"report: {', '.join(str(p) for p in result.report_files)}")
+        video = result.summary.get("video") or {}
+        if video.get("path"):
+            print(f"video: {video['path']} ({video['frames']} frames)")
     if result.exit_code != 0 and result.message:
         kind = "interrupted" if result.summary.get("interrupted") else "error"
         print(f"pws replay: {kind}: {result.message}", file=sys.stderr)

@@ -84,12 +84,16 @@ class Worker:
 
 
 class WorkerNode:
-    """A node's logic around one :class:`Worker` (``self.worker``): closing the node closes it."""
+    """A node's logic around one :class:`Worker` (``self.worker``), and maybe an overlay output
+    (``self.overlay``, with its own): closing the node closes both."""
 
     worker: Worker
 
     def close(self) -> None:
         self.worker.close()
+        overlay = getattr(self, "overlay", None)
+        if overlay is not None:
+            overlay.close()
 
 
 class ShutdownSafePublisher:

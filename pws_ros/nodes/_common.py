@@ -8,7 +8,7 @@ import sys
 import time
 from typing import Any, Callable, NoReturn
 
-from ..bridge import msgbuild, msgconv
+from ..bridge import msgbuild, msgconv, outputs
 from ..bridge.config import depth_info_topic
 from ..bridge.inputs import InputAssembler, RawFrame
 from ..core.errors import PwsError
@@ -177,21 +177,94 @@ class StaticExtrinsic:
 
 
 class HealthPublisher:
-    """Publishes ``<node>: health`` on ``/diagnostics`` every ``health_period_s``."""
+    """Publishes ``<node>: health`` on ``/diagnostics`` every ``health_period_s``. A certifying node
+    (``certifying``) tells it each frame it published (:meth:`published`): its ``labels``
+    (:class:`~pws_ros.bridge.outputs.CertifiedLabelWatch`) give a WARN past ``certified_label_timeout_s``
+    and their keys; with ``certification_to_diagnostics`` the frame's certification also goes out on
+    ``/diagnostics``. ``overlay`` (:class:`OverlayOutput`) adds its keys."""
 
-    def __init__(self, ctx: Any, counters: Callable[[], dict[str, Any]]):
+    def __init__(self, ctx: Any, counters: Callable[[], dict[str, Any]], *, certifying: bool = False, overlay: Any = None):
         self.ctx = ctx
         self.counters = counters
+        self.labels = outputs.CertifiedLabelWatch() if certifying else None
+        self.overlay = overlay
         self.pub = ctx.publisher(ctx.types.DiagnosticArray, "/diagnostics", kind="reliable", depth=10)
         self.timer = ctx.timer(ctx.config.health_period_s, self.publish)
+
+    def published(self, frame_outputs: list[tuple[str, Any]]) -> None:
+        """A frame's :func:`~pws_ros.bridge.outputs.frame_outputs`, just published."""
+        if self.labels is not None:
+            self.labels.saw(frame_outputs)
+        if self.ctx.config.certification_to_diagnostics:
+            for rel, msg in frame_outputs:
+                if rel == outputs.CERTIFICATION:
+                    self.pub.publish(msg)
 
     def publish(self) -> None:
         c = dict(self.counters())
         extra = c.pop("extra", {})
+        if self.labels is not None:
+            late = self.labels.warning(self.ctx.config.certified_label_timeout_s)
+            c["warning"] = "; ".join(t for t in (c.get("warning", ""), late) if t)
+            extra = {**extra, **self.labels.counters()}
+        if self.overlay is not None:
+            extra = {**extra, **self.overlay.counters()}
         extra = {**extra, "qos_incompatible_events": self.ctx.qos_events}
         hdr = msgbuild.make_header(self.ctx.types, max(0, self.ctx.now_ns()), "")
         msg = msgbuild.health_status(hdr, node_name=self.ctx.name, types=self.ctx.types, extra=extra, **c)
         self.pub.publish(msg)
+
+
+class OverlayOutput:
+    """``certification/overlay`` (``publish_overlay``): the overlay picture of each certified frame
+    (:func:`~pws_ros.bridge.overlay.draw_overlay`: the classifier's α = 0 view, label, p_A, a bar per axis),
+    drawn and published at the frame's header by a :class:`Worker` of its own after the frame's
+    certification is out. Its slot holds the newest frame only: a frame whose overlay is not drawn before
+    the next certification comes is skipped (``overlays_skipped``), never queued, and the certification
+    worker never waits for it. The publisher and the thread are made when the parameter is first on (at
+    start or on a change, in a callback), never from a worker thread."""
+
+    def __init__(self, ctx: Any):
+        self.ctx = ctx
+        self.pub: Any = None
+        self.worker: Worker | None = None
+        self.failed = 0
+        self.update(ctx.config)
+
+    def update(self, cfg: Any) -> None:
+        if cfg.publish_overlay and self.pub is None:
+            from ..bridge.overlay import draw_overlay
+
+            draw_overlay(None, [])   # OpenCV's first drawing (about 50 ms) now, not beside the first frame
+            self.pub = self.ctx.publisher(self.ctx.types.Image, outputs.OVERLAY)
+            self.worker = Worker("pws-overlay", self._draw, self.ctx.log)
+
+    def submit(self, header: Any, stamp_ns: int, certificates: list[Any], view: Callable[[], Any]) -> None:
+        """Hand a published frame over: ``view()`` (called in the overlay thread) gives its α = 0 frame or None."""
+        if self.worker is not None and self.ctx.config.publish_overlay:
+            self.worker.submit((header, int(stamp_ns), list(certificates), view))
+
+    def _draw(self, job: tuple[Any, int, list[Any], Callable[[], Any]]) -> None:
+        from ..bridge.overlay import draw_overlay
+
+        header, stamp_ns, certs, view = job
+        try:
+            image = view()
+        except Exception as exc:  # noqa: BLE001 - the picture goes out without its view, the reason in the log
+            self.failed += 1
+            image = None
+            self.ctx.log("warn", f"overlay of frame {stamp_ns}: no view ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})")
+        self.pub.publish(msgbuild.image_from_numpy(header, draw_overlay(image, certs, stamp_ns), self.ctx.types))
+
+    def counters(self) -> dict[str, Any]:
+        """The health status' keys (when the overlay was ever on)."""
+        if self.worker is None:
+            return {}
+        return {"overlays_published": self.worker.processed, "overlays_skipped": self.worker.slot.dropped}
+
+    def close(self) -> None:
+        if self.worker is not None:
+            self.worker.close()
 
 
 class InputFrontend:

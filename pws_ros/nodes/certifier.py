@@ -15,7 +15,9 @@ axis, for a plan) is an ERROR in the frame's one certification message.
 
 Publishes (reliable): ``certification`` (DiagnosticArray, one per input frame: header = source
 stamp + frame id, one status ``pws/<axis>`` per axis; key schema in :mod:`pws_ros.bridge.msgbuild`),
-``certification/markers`` (MarkerArray) and ``/diagnostics`` (health: rate, drops, device).
+``certified_label`` (DiagnosticArray, only for a frame certified on every axis), ``certification/markers``
+(MarkerArray), ``certification/overlay`` (Image rgb8, ``publish_overlay``: the α = 0 frame of the
+received plan) and ``/diagnostics`` (health: rate, drops, device, time since the last certified label).
 """
 from __future__ import annotations
 
@@ -25,8 +27,9 @@ from typing import Any
 
 from ..bridge import msgbuild, outputs, scheme
 from ..bridge.assembly import AssembledFrame, PartitionAssembler
+from ..bridge.preview import assembled_alpha0
 from ..core.errors import PwsError
-from ._common import HealthPublisher, Throttle, Worker, guarded, jump_logger, entry_point, WorkerNode
+from ._common import HealthPublisher, OverlayOutput, Throttle, Worker, guarded, jump_logger, entry_point, WorkerNode
 
 NODE_NAME = "certifier"
 POLL_S = 0.05
@@ -51,7 +54,8 @@ class CertifierNode(WorkerNode):
         self.certified = 0
         self.bad_messages = 0
         self.last_frame_error = ""
-        self.pubs = outputs.OutputPublishers(ctx, (outputs.CERTIFICATION, outputs.MARKERS))
+        self.pubs = outputs.OutputPublishers(ctx, (outputs.CERTIFICATION, outputs.CERTIFIED_LABEL, outputs.MARKERS))
+        self.overlay = OverlayOutput(ctx)
         self.worker = Worker("pws-certifier", self._process, ctx.log)
         frames_depth = cfg.frames_qos_depth
         def sub(msg_type: Any, topic: str, fn: Any, depth: int) -> Any:
@@ -65,12 +69,13 @@ class CertifierNode(WorkerNode):
             sub(T.String, "rendered/errors", self._on_error, max(10, cfg.output_qos_depth)),
         ]
         self.timer = ctx.timer(POLL_S, self._poll)
-        self.health = HealthPublisher(ctx, self._counters)
+        self.health = HealthPublisher(ctx, self._counters, certifying=True, overlay=self.overlay)
 
     def _on_change(self, cfg: Any) -> None:
         self.assembler.timeout_s = cfg.assembly_timeout_s
         self.assembler.max_count = cfg.max_partitions
         self.assembler.max_bytes = self._max_bytes(cfg)
+        self.overlay.update(cfg)
 
     @staticmethod
     def _max_bytes(cfg: Any) -> int:
@@ -181,18 +186,25 @@ class CertifierNode(WorkerNode):
         self.engine.config = cfg = self.ctx.config
         result = self.engine.certify_assembled(frame)
         self._publish(result, cfg)
+        if cfg.publish_overlay:   # the α = 0 frame taken now (not the whole assembled frame held for the overlay)
+            view = assembled_alpha0(frame)
+            self.overlay.submit(msgbuild.make_header(self.ctx.types, result.stamp_ns, result.frame_id), result.stamp_ns,
+                                result.certificates, lambda: view)
         self.certified += 1
         self.last_frame_error = outputs.frame_error(result.certificates)
         self.ctx.log("info", outputs.summary_line(frame.stamp_ns, result.certificates))
 
     def _publish(self, result: Any, cfg: Any) -> None:
-        """Publish one frame's markers and certification (the other nodes publish its cloud, poses and previews)."""
+        """Publish one frame's markers, certified label and certification (the other nodes publish its cloud, poses
+        and previews)."""
         T = self.ctx.types
         switches = replace(outputs.OutputSwitches.from_config(cfg), cloud=False, poses=False, preview=False)
-        self.pubs.publish(outputs.frame_outputs(
+        out = outputs.frame_outputs(
             T, msgbuild.make_header(T, result.stamp_ns, result.frame_id), result.certificates, node_name=self.ctx.name,
             latency_ms=(self.ctx.now_ns() - result.stamp_ns) / 1e6, compute_ms=result.compute_ms, switches=switches,
-            result=result))
+            result=result)
+        self.pubs.publish(out)
+        self.health.published(out)
 
     def _counters(self) -> dict[str, Any]:
         w = self.worker

@@ -154,9 +154,10 @@ class Launch:
 
 class Player:
     """An rclpy node of its own context on ``domain``: reliable publishers on ``topics`` ({topic: type
-    name of :func:`rclpy_types`}), and the ``certification`` and ``/diagnostics`` messages received."""
+    name of :func:`rclpy_types`}), and the ``certification`` and ``/diagnostics`` messages received (and
+    those of ``listen``, {topic: type name}, in ``received[topic]``)."""
 
-    def __init__(self, domain: int, topics: dict[str, str], name: str = "pws_player"):
+    def __init__(self, domain: int, topics: dict[str, str], name: str = "pws_player", listen: dict[str, str] | None = None):
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
 
@@ -174,6 +175,9 @@ class Player:
         self.lock = threading.Lock()
         self.node.create_subscription(self.T.DiagnosticArray, "/certification", self._cert, qos("reliable", 100))
         self.node.create_subscription(self.T.DiagnosticArray, "/diagnostics", self._health, qos("reliable", 100))
+        self.received: dict[str, list[Any]] = {topic: [] for topic in (listen or {})}
+        for topic, kind in (listen or {}).items():
+            self.node.create_subscription(getattr(self.T, kind), topic, lambda m, t=topic: self._got(t, m), qos("reliable", 100))
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.thread = threading.Thread(target=self._spin, daemon=True)
@@ -192,6 +196,10 @@ class Player:
     def _health(self, msg: Any) -> None:
         with self.lock:
             self.health.append(msg)
+
+    def _got(self, topic: str, msg: Any) -> None:
+        with self.lock:
+            self.received[topic].append(msg)
 
     def publish(self, topic: str, msg: Any) -> None:
         self.pubs[topic].publish(msg)

@@ -14,8 +14,10 @@ Subscribes (sensor-data QoS by default): ``points_topic`` (PointCloud2) or ``dep
 ``color_topic`` (Image) + ``camera_info_topic`` (CameraInfo) [+ ``depth_camera_info_topic``].
 Publishes (reliable): ``certification`` (DiagnosticArray, one per processed input frame, header =
 source header, one status ``pws/<axis>`` per axis; key schema in :mod:`pws_ros.bridge.msgbuild`),
-``certification/markers`` (MarkerArray), ``cloud`` (PointCloud2) + ``cloud/camera_info``,
-``plan/poses/<axis>`` (PoseArray), ``rendered/preview`` (Image rgb8) and ``/diagnostics`` (health).
+``certified_label`` (DiagnosticArray, only for a frame certified on every axis), ``certification/markers``
+(MarkerArray), ``cloud`` (PointCloud2) + ``cloud/camera_info``, ``plan/poses/<axis>`` (PoseArray),
+``rendered/preview`` (Image rgb8), ``certification/overlay`` (Image rgb8, ``publish_overlay``) and
+``/diagnostics`` (health).
 """
 from __future__ import annotations
 
@@ -23,9 +25,10 @@ from typing import Any
 
 from ..bridge import outputs
 from ..bridge.inputs import RawFrame, convert
+from ..bridge.preview import alpha0_view
 from ..bridge.workers import StampAssignment, set_torch_threads
 from ..core.errors import PwsError
-from ._common import HealthPublisher, InputFrontend, Worker, entry_point, WorkerNode
+from ._common import HealthPublisher, InputFrontend, OverlayOutput, Worker, entry_point, WorkerNode
 
 NODE_NAME = "pipeline"
 
@@ -42,13 +45,14 @@ class PipelineNode(WorkerNode):
         self.other_workers = 0            # frames assigned to another worker (not ours to certify)
         set_torch_threads(ctx.config.num_workers, ctx.log)
         self.engine = FrameCertifier(ctx.config, log=ctx.log)  # loads the model now (PwsError -> exit 2)
-        self.pubs = outputs.OutputPublishers(ctx, (outputs.CERTIFICATION, outputs.MARKERS, outputs.CLOUD,
+        self.pubs = outputs.OutputPublishers(ctx, (outputs.CERTIFICATION, outputs.CERTIFIED_LABEL, outputs.MARKERS, outputs.CLOUD,
                                                    outputs.CLOUD_INFO, outputs.PREVIEW), axes=ctx.config.axes)
+        self.overlay = OverlayOutput(ctx)
         self.frame_errors = 0
         self.last_frame_error = ""
         self.worker = Worker("pws-pipeline", self._process, ctx.log)
         self.frontend = InputFrontend(ctx, self._on_frame)
-        self.health = HealthPublisher(ctx, self._counters)
+        self.health = HealthPublisher(ctx, self._counters, certifying=True, overlay=self.overlay)
         coverage = f"coverage {ctx.config.coverage}, " if ctx.config.method != "cms" else ""  # cms has no coverage rule
         ctx.log("info", f"pipeline ready: axes {', '.join(ctx.config.axes)}, method {ctx.config.method}, "
                         f"{coverage}device {self.engine.device}")
@@ -58,6 +62,7 @@ class PipelineNode(WorkerNode):
     def _on_change(self, cfg: Any) -> None:
         self.frontend.assembler.reconfigure(cfg)
         self.pubs.update_axes(cfg.axes)
+        self.overlay.update(cfg)
 
     def _on_frame(self, raw: RawFrame) -> None:
         if not self.assignment.mine(raw.stamp_ns):
@@ -83,17 +88,23 @@ class PipelineNode(WorkerNode):
         result = self.engine.process(frame.cloud, frame.intrinsics, raw.stamp_ns, frame_id=raw.header.frame_id,
                                      preview_every=cfg.preview_every if cfg.publish_preview else 0,
                                      should_stop=lambda: self.worker.stopping)
-        self._publish(raw, result.certificates, compute_ms=result.compute_ms, frame=frame, result=result)
+        self._publish(raw, result.certificates, compute_ms=result.compute_ms, frame=frame, result=result,
+                      view=lambda: alpha0_view(result, self.engine.source_cloud(frame.cloud), device=self.engine.device))
         self.last_frame_error = outputs.frame_error(result.certificates)
         ctx.log("info", outputs.summary_line(raw.stamp_ns, result.certificates))
 
-    def _publish(self, raw: RawFrame, certs: list[Any], *, compute_ms: Any, frame: Any = None, result: Any = None) -> None:
-        """Publish one frame's outputs (:func:`~pws_ros.bridge.outputs.frame_outputs`: the certification last)."""
+    def _publish(self, raw: RawFrame, certs: list[Any], *, compute_ms: Any, frame: Any = None, result: Any = None,
+                 view: Any = None) -> None:
+        """Publish one frame's outputs (:func:`~pws_ros.bridge.outputs.frame_outputs`: the certification last),
+        then hand it to the overlay (``view()``: its α = 0 frame, made in the overlay's thread)."""
         ctx = self.ctx
-        self.pubs.publish(outputs.frame_outputs(
+        out = outputs.frame_outputs(
             ctx.types, raw.header, certs, node_name=ctx.name, latency_ms=(ctx.now_ns() - raw.stamp_ns) / 1e6,
             compute_ms=compute_ms, switches=outputs.OutputSwitches.from_config(self.engine.config),  # this frame's config
-            frame=frame, result=result))
+            frame=frame, result=result)
+        self.pubs.publish(out)
+        self.health.published(out)
+        self.overlay.submit(raw.header, raw.stamp_ns, certs, view or (lambda: None))
 
     def _counters(self) -> dict[str, Any]:
         w = self.worker

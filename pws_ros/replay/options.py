@@ -11,6 +11,7 @@ from ..core.errors import PwsError
 from ..core.registration import Extrinsic
 from .progress_log import DEFAULT_INTERVAL_S
 from .report import FrameRecord, format_table
+from .video import DEFAULT_FPS
 
 NODE_NAME = "pws_replay"
 GROUND_TRUTH_TOPIC = "/pws/ground_truth"
@@ -53,6 +54,8 @@ class ReplayOptions:
     namespace: str = ""
     compress: bool = True
     report_dir: Path | None = None
+    video: Path | None = None               # --video: the overlay picture of every frame (.mp4, .avi or a PNG folder)
+    video_fps: float = DEFAULT_FPS          # --video-fps: frames per second of a video file
     quiet: bool = False
     progress: bool | None = None            # None: a bar on a terminal, else log lines; False: none (also --quiet)
     progress_interval_s: float = DEFAULT_INTERVAL_S   # seconds between progress log lines (not on a terminal)

@@ -24,6 +24,7 @@ from .options import GROUND_TRUTH_TOPIC, NODE_NAME, SIM_DENSE_MARKER, GroundTrut
 from .schedule import RealtimeScheduler, stamp_ordered
 from .summary import replay_summary, replay_verdict
 from .truth import dense_cloud_of, load_ground_truth, truth_near
+from .video import OverlayVideo, overlay_picture
 
 
 class Replay:
@@ -45,6 +46,7 @@ class Replay:
         self.stop = StopSignals()               # entered around the frame loop
         self._out_pending: list[tuple[str, Any, int]] = []   # the messages of the frame in flight
         self._committed = 0                     # records whose messages are in the bag
+        self.video: OverlayVideo | None = None  # --video: the overlay picture of every frame
 
     # ---- logging ----
     def log(self, level: str, message: str) -> None:
@@ -140,6 +142,8 @@ class Replay:
                 for topic, msg, stamp in self._out_pending:
                     self.writer.write(topic, msg, stamp)
                 self.writer.flush()
+            if self.video is not None:
+                self.video.commit()
             self._out_pending.clear()
             self._committed = len(self.records)
 
@@ -188,6 +192,7 @@ class Replay:
                               1000.0 * duration, 1000.0 * duration, input_error=str(exc))
             self._finish_record(rec, truth)
             self._emit(header, certs, raw.stamp_ns, latency_ms=rec.latency_ms, compute_ms=0.0)
+            self._hold_overlay(certs, raw.stamp_ns)
             return rec, duration
         if dense_error:
             duration = time.perf_counter() - t0
@@ -206,7 +211,13 @@ class Replay:
             rec.latency_ms = 1000.0 * (start_s + cost - raw.stamp_ns / 1e9)
         self._finish_record(rec, truth)
         self._emit(header, certs, raw.stamp_ns, latency_ms=rec.latency_ms, compute_ms=compute, frame=frame, result=result)
+        self._hold_overlay(certs, raw.stamp_ns, result, frame.cloud, dense)
         return rec, duration
+
+    def _hold_overlay(self, certs: list[Certificate], stamp_ns: int, result: Any = None, cloud: Any = None, dense: Any = None) -> None:
+        """``--video``: the frame's overlay picture, written with its messages (:meth:`_commit`)."""
+        if self.video is not None:
+            self.video.hold(overlay_picture(self.engine, certs, stamp_ns, result, cloud, dense, self.warn_once), stamp_ns)
 
     def _finish_record(self, rec: FrameRecord, truth: GroundTruth | None) -> None:
         if truth is not None:
@@ -246,6 +257,8 @@ class Replay:
             require(not out.resolve().is_relative_to(bag_path.resolve()) if bag_path.is_dir() else True,
                     f"--out {out} lies inside the input bag directory")
             require(opts.overwrite or not out.exists(), f"output {out} already exists: choose another --out or pass --overwrite")
+        if opts.video is not None:
+            self.video = OverlayVideo(opts.video, overwrite=opts.overwrite, fps=opts.video_fps)
         with BagReader(bag_path, warn=self.warn) as bag:
             require(bool(bag.topics), f"bag {bag_path} is empty: it has no topics")
             require(bag.message_count != 0, f"bag {bag_path} holds no messages (topics: {bag.describe()})")
@@ -285,6 +298,8 @@ class Replay:
                     # the frame in flight is dropped whole: its record goes with its unwritten messages
                     del self.records[self._committed:]
                     self._out_pending.clear()
+                    if self.video is not None:
+                        self.video.discard()
                     self.warn(f"interrupted ({interrupted}): the frame in flight is dropped; closing the bag with the "
                               f"{len(self.records)} frame(s) done")
                 finally:
@@ -300,6 +315,7 @@ class Replay:
 
                                 shutil.rmtree(out, ignore_errors=True)
                                 out = None
+                        video = self.video.close() if self.video is not None else None
             dropped = scheduler.dropped if scheduler is not None else 0
             extra_frames = {"unmatched_inputs": self.assembler.dropped, "ignored_inputs": self.assembler.ignored}
             bag_info = {"path": str(bag_path), "storage": bag.storage, "layout": bag.layout, "backend": bag.backend,
@@ -308,6 +324,8 @@ class Replay:
         summary = self._summary(inputs, out, dropped, wall, extra_frames, bag_info, counts)
         exit_code, message = self._verdict(inputs)
         summary["interrupted"] = interrupted or None
+        if self.video is not None:
+            summary["video"] = {"path": str(video) if video is not None else None, "frames": self.video.frames}
         if interrupted:
             summary["title"] += f" (interrupted by {interrupted})"
             exit_code = Interrupted(interrupted).exit_code
