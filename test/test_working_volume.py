@@ -336,7 +336,7 @@ def test_live_launches_certify_with_a_working_volume(launch_file, tmp_path, monk
         monkeypatch.setenv(k, env[k])
     monkeypatch.delenv("ROS_LOCALHOST_ONLY", raising=False)
     config = tmp_path / "volume.yaml"
-    config.write_text("/**:\n  ros__parameters:\n    input_mode: rgbd\n    input_qos: reliable\n    n0: 16\n    n: 32\n"
+    config.write_text("/**:\n  ros__parameters:\n    input_mode: rgbd\n    input_qos: reliable\n"
                       f"    model_path: {_json.dumps(str(Path(__file__).resolve().parents[1] / 'bags/models/classifier_sigma0.50.pt'))}\n"
                       "    working_volume:\n      near: 0.0\n      far: 3.0\n")
     launch = Launch(launch_file, {"config_file": str(config)}, tmp_path, env)
