@@ -38,7 +38,7 @@ def run(args) -> int:
         intr = intr.scaled(w, h)
     denoiser = load_denoiser(args.denoiser, device=device) if args.denoiser else None
     if args.method != "cms":   # the size of the frames the classifier gets: the model's, else the camera's
-        from ..bridge.engine import choose_batch_size
+        from ..bridge.sizing import choose_batch_size
 
         shape = tuple(model.input_size) if model.input_size is not None else intr.shape
         batch_size, _ = choose_batch_size(model, shape, config.batch_size, config.sigma, device=device, denoiser=denoiser,
