@@ -9,10 +9,11 @@ from ..core.model import load_denoiser, load_model
 from ..core.render import resolve_device
 from ..replay.progress_log import Progress
 from .common import add_output_args, add_plan_args, add_scene_args, add_smoothing_args, config_from_args, emit, load_scene
+from . import SUMMARIES
 
 
 def register(sub) -> None:
-    p = sub.add_parser("certify", help="certify a classifier's smoothed prediction against camera motion",
+    p = sub.add_parser("certify", help=SUMMARIES["certify"],
                        description="Plan, render and certify: is the smoothed prediction the same for every camera "
                                    "motion in [-B, B] along AXIS? Prints the label, the certified radius (the largest "
                                    "covered symmetric sub-interval of the grid), the p_A lower bounds and what the "
