@@ -200,8 +200,8 @@ def test_a_slow_classifier_keeps_each_frame_within_its_budget(small_camera):
     for stamp in range(2):
         t0 = time.perf_counter()
         res = eng.process(cloud, small_camera, stamp)
-        wall = time.perf_counter() - t0
-        assert wall <= 1.1 * budget, (wall, [c.bounds.get("time_budget") for c in res.certificates])
+        wall = time.perf_counter() - t0 - res.timings.get("startup", 0.0)   # start-up work (the warm-ups) is not the frame's
+        assert wall <= 1.1 * budget and res.timings["total"] <= 1.1 * budget, (wall, [c.bounds.get("time_budget") for c in res.certificates])
         for c in res.certificates:
             tb = c.bounds["time_budget"]
             assert c.status != "error", c.reason
@@ -244,16 +244,16 @@ def test_a_slow_geometry_is_coarsened_and_still_answers(monkeypatch):
     real = FrameBudget.warm_up_geometry
     warmed = []
 
-    def slow_configured(self, cloud, imaging, axis, dense_cloud=None, coarse=False):
-        real(self, cloud, imaging, axis, dense_cloud, coarse)
+    def slow_configured(self, cloud, imaging, axis, dense_cloud=None, coarse=False, timed=True):
+        real(self, cloud, imaging, axis, dense_cloud, coarse, timed)
         time.sleep(0.5)   # a slow warm-up: start-up work, never in the frame's budget or time
         warmed.append((imaging.factor, coarse))
-        if not coarse:
+        if timed and not coarse:
             self.costs.set_geometry(0.1, 5.0)
 
     monkeypatch.setattr(FrameBudget, "warm_up_geometry", slow_configured)
     res = eng.process(box_scene(cam), cam, 3)
-    assert warmed == [(2, False), (1, True)]
+    assert warmed == [(2, False), (2, False), (1, True), (1, True)]   # measured on tz; ry's lazy initialisation paid too
     assert res.timings["startup"] >= 1.0 and res.timings["total"] < 8.0
     for c in res.certificates:
         tb = c.bounds["time_budget"]

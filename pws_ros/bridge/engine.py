@@ -8,7 +8,8 @@ The cloud stays metric in the camera optical frame; frames are made by the imagi
 :mod:`pws_ros.core.imaging` (``imaging``: ``surfel`` renders a centred crop of the camera at its native
 resolution and block-averages it to the model's input size; ``paper`` rescales the camera to the
 model's input size, or ``render_width x render_height``). One :class:`~pws_ros.core.imaging.Imaging`
-per frame serves every axis (its masked border is computed from all the frame's radii).
+per frame serves every axis (its masked border is computed from all the frame's radii; a time budget's
+coarser level renders an axis at render factor 1, :mod:`pws_ros.bridge.sizing`).
 
 Risk and noise: the frame's statement (every axis together) holds with probability at least
 ``1 - alpha``: each of the ``A`` axes spends ``alpha / A`` (Bonferroni), recorded in each certificate as
@@ -44,7 +45,7 @@ from .scheme import PlanBundle, rendered_plan_from_parts
 from .selfaudit import audit_certificate
 from .assembly import AssembledFrame
 from .budget import Sizes
-from .sizing import COARSE_FACTOR, FrameBudget, LogFn, choose_batch_size, size_advice
+from .sizing import COARSE_FACTOR, FrameBudget, LogFn, size_advice
 
 
 def _default_log(level: str, message: str) -> None:
@@ -126,7 +127,6 @@ class FrameCertifier:
         # parameter change gives it another working volume, background or uncovered rule
         self._imaging_described: tuple | None = None
         self._sigma_checked: float | None = None
-        self._batch_checked = False       # the batch size was timed against a small one (check_batch_size)
         self.batch_size = int(config.batch_size)   # images per classifier call: the configured, or a faster smaller one
         self._frames_seen = 0
         self.budget = FrameBudget(self)   # time_budget_s: the cost model and each axis' work (bridge.sizing)
@@ -234,15 +234,8 @@ class FrameCertifier:
         return cert
 
     def check_batch_size(self, shape: tuple[int, int]) -> float:
-        """Once (at start when the input size is known then, else before the first certificate): the batch
-        size of this engine's classifier calls on ``shape`` inputs, from :func:`choose_batch_size`. Returns
-        the seconds it took (0 when nothing was timed)."""
-        if self._batch_checked:
-            return 0.0
-        self._batch_checked = True
-        self.batch_size, spent = choose_batch_size(self.model, shape, self.batch_size, float(self.config.sigma), device=self.device,
-                                                   denoiser=self.denoiser, log=self.log)
-        return spent
+        """Once: the batch size of this engine's classifier calls (:meth:`.sizing.FrameBudget.check_batch_size`)."""
+        return self.budget.check_batch_size(shape)
 
     def _check_sigma(self) -> None:
         """Warn (once per value) when the pixel noise sigma differs from the sigma the model's

@@ -35,11 +35,24 @@ class FrameBudget:
     def __init__(self, engine: Any):
         self.engine = engine
         self.costs = CostModel()          # what work costs on this machine
+        self._batch_checked = False       # the batch size was timed against a small one (check_batch_size)
 
     @property
     def on(self) -> bool:
         c = self.engine.config
         return float(c.time_budget_s) > 0 and c.method != "cms"
+
+    def check_batch_size(self, shape: tuple[int, int]) -> float:
+        """Once (at start when the input size is known then, else before the first certificate): the batch
+        size of the engine's classifier calls on ``shape`` inputs, from :func:`choose_batch_size`. Returns
+        the seconds it took (0 when nothing was timed; start-up work)."""
+        if self._batch_checked:
+            return 0.0
+        self._batch_checked = True
+        e = self.engine
+        e.batch_size, spent = choose_batch_size(e.model, shape, e.batch_size, float(e.config.sigma), device=e.device,
+                                                denoiser=e.denoiser, log=e.log)
+        return spent
 
     # ---- warm-ups (start-up work: never charged to a frame) ----
     def warm_up_inference(self, shape: tuple[int, int]) -> None:
@@ -50,15 +63,17 @@ class FrameBudget:
         e.log("info", f"time budget {e.config.time_budget_s:g} s per frame: a classifier call of {e.batch_size} images takes "
                       f"{1000 * t_full:.1f} ms here ({1000 * t_one:.1f} ms for 1)")
 
-    def warm_up_geometry(self, cloud: Any, imaging: Any, axis: str, dense_cloud: Any = None, coarse: bool = False) -> None:
+    def warm_up_geometry(self, cloud: Any, imaging: Any, axis: str, dense_cloud: Any = None, coarse: bool = False,
+                         timed: bool = True) -> None:
         """Measure planning and the geometry of a small grid (WARMUP_POINTS points) of this frame with
-        ``imaging`` (``coarse``: the coarse level's, :data:`COARSE_FACTOR`)."""
+        ``imaging`` (``coarse``: the coarse level's, :data:`COARSE_FACTOR`); ``timed`` False: only the first,
+        uncounted pass (what is paid once, lazy initialisation, for another axis)."""
         from ..core.certify import bounds_bytes
         from ..core.imaging import make_renderer, segment_bounds
 
         e = self.engine
         src = e.source_cloud(cloud, dense_cloud)
-        for points in (MIN_POINTS, WARMUP_POINTS):   # the first pass pays what is paid once (lazy initialisation): not counted
+        for points in (MIN_POINTS, WARMUP_POINTS)[:2 if timed else 1]:   # the first pass pays what is paid once: not counted
             t0 = time.perf_counter()
             plan = e.plan_axis(src, imaging, axis, max_partitions=points)
             renderer = make_renderer(src, imaging, axis, device=e.device, alpha_range=(float(plan.alphas[0]), float(plan.alphas[-1])))
@@ -66,6 +81,8 @@ class FrameBudget:
             renderer.render_batch(plan.alphas)
             segment_bounds(renderer, src, imaging, plan.alphas, max_bytes=bounds_bytes(e.certify_config()))
             t2 = time.perf_counter()
+        if not timed:
+            return
         per_point = (t2 - t1) / max(1, plan.num_partitions)
         self.costs.set_geometry(t1 - t0, per_point, coarse=coarse)
         what = f"render factor {imaging.factor}" + (" (coarse)" if coarse else "")
@@ -91,11 +108,12 @@ class FrameBudget:
         return time.perf_counter() - t0
 
     def _warm_geometry(self, cloud: Any, imaging: Any, dense_cloud: Any, coarse: bool) -> None:
+        """Measured on the first axis that plans; every other axis pays its own lazy initialisation here."""
+        if self.costs.has(coarse):
+            return
         for axis in self.engine.config.axes:
-            if self.costs.has(coarse):
-                break
             try:
-                self.warm_up_geometry(cloud, imaging, axis, dense_cloud, coarse=coarse)
+                self.warm_up_geometry(cloud, imaging, axis, dense_cloud, coarse=coarse, timed=not self.costs.has(coarse))
             except PwsError:
                 continue   # an axis that cannot plan is reported by its certificate
 
