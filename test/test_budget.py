@@ -304,3 +304,26 @@ def test_spreading_is_off_by_default_and_where_the_anchors_reach(small_camera):
     assert on.bounds["spread_estimation"] is True and on.n == 5 * 100 // K > 100 and on.classifier_calls == 16 + K * on.n
     near = certify(cloud, small_camera, model, "tz", 1e-5, config=dataclasses.replace(base, spread_estimation=True))
     assert near.radius == pytest.approx(1e-5) and near.bounds["spread_estimation"] is False and near.n == 100
+
+
+def test_the_levels_coarsen_in_order_and_fall_back_to_the_configured_imaging():
+    """size_work: the configured geometry while its least work fits, then render factor 1, then fewer frontier
+    rounds; a coarse imaging not measured keeps the configured one (with fewer rounds); nothing fits: the
+    least work of the last level, fits False. A function of its arguments only."""
+    c = costs(batch=0.01, image=0.01, point=0.5, fixed=0.2)
+    c.coarse_point_s, c.coarse_fixed_s = 0.1, 0.1
+    conf = dict(CONF, min_n=8)
+    order = []
+    for share in (200.0, 20.0, 6.0, 3.0, 1.0, 0.1):
+        s = B.size_work(share, c, can_coarsen=True, **conf)
+        order.append((s.coarse, s.frontier_rounds, s.fits))
+        assert s == B.size_work(share, c, can_coarsen=True, **conf)
+        if s.fits:
+            assert s.predicted_s <= B.SAFETY * share
+    assert order[0] == (False, 4, True) and order[-1] == (True, 0, False)
+    assert order == sorted(order, key=lambda o: (o[0], -o[1], not o[2]))   # never back to a finer level for less time
+    assert any(o[:2] == (True, 4) for o in order)
+    unmeasured = costs(batch=0.01, image=0.01, point=0.5, fixed=0.2)
+    s = B.size_work(12.0, unmeasured, can_coarsen=True, **conf)
+    assert not s.coarse and s.fits and s.frontier_rounds < 4
+    assert B.size_work(12.0, c, can_coarsen=False, **conf).coarse is False

@@ -240,16 +240,16 @@ def size_axis(share_s: float, costs: CostModel, *, n0: int, n: int, num_anchors:
 
 
 def size_work(share_s: float, costs: CostModel, *, can_coarsen: bool, **conf: Any) -> Sizes:
-    """The sizes at the first :func:`levels` whose least work fits ``share_s`` (levels whose geometry is
-    not measured are skipped); where none fits, the least work of the coarsest level (``fits`` False: it
-    runs anyway, over budget). ``conf``: what :func:`size_axis` takes besides the share and the costs."""
+    """The sizes at the first :func:`levels` whose least work fits ``share_s`` (a level whose imaging is not
+    measured keeps the configured imaging, with its frontier rounds); where none fits, the least work of
+    the coarsest level (``fits`` False: it runs anyway, over budget). ``conf``: what :func:`size_axis`
+    takes besides the share and the costs."""
     out = None
     for level in levels(can_coarsen):
-        if costs.has(level.coarse):
-            out = size_axis(share_s, costs, level=level, **conf)
-            if out.fits:
-                break
-    assert out is not None, "the configured geometry is measured before a budget sizes an axis"
+        out = size_axis(share_s, costs, level=level if costs.has(level.coarse) else Level(False, level.rounds), **conf)
+        if out.fits:
+            break
+    assert out is not None
     return out
 
 
