@@ -104,7 +104,7 @@ class FrameBudget:
                 try:
                     self._warm_geometry(cloud, coarse_imaging(), dense_cloud, True)
                 except PwsError:
-                    pass   # no coarse level for this frame: the configured one runs over budget
+                    pass   # no coarse imaging for this frame: the configured one, with fewer frontier rounds
         return time.perf_counter() - t0
 
     def _warm_geometry(self, cloud: Any, imaging: Any, dense_cloud: Any, coarse: bool) -> None:
