@@ -1,7 +1,9 @@
 """The ``pws`` command: the pws_ros engine without ROS.
 
 Each subcommand lives in :mod:`pws_ros.commands` and exposes ``register(subparsers)`` and ``run(args)``.
-Bad input prints one line naming the problem and exits with status 2 (no traceback).
+Bad input prints one line naming the problem and exits with status 2 (no traceback). Only the command
+that runs is imported (``pws --help`` lists the others from :data:`pws_ros.commands.SUMMARIES`, without
+importing torch: it returns at once).
 """
 from __future__ import annotations
 
@@ -10,10 +12,10 @@ import importlib
 import sys
 
 from . import __version__
+from .commands import SUMMARIES, module_name
 from .core.errors import PwsError
 
-COMMANDS = ("plan", "render", "certify", "audit", "replay", "ceiling", "bench", "sim", "train", "export_model", "finetune",
-            "importing")
+COMMANDS = tuple(module_name(c) for c in SUMMARIES)   # the modules of pws_ros.commands
 
 DESCRIPTION = """\
 Certify that an image classifier keeps its prediction under camera motion, with Pixel-wise
@@ -36,24 +38,36 @@ examples:
 run `pws COMMAND --help` for each command."""
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = "*") -> argparse.ArgumentParser:
+    """The ``pws`` parser with the arguments of ``command`` (a CLI name, ``"*"`` every command; the others
+    are listed by their one line only, their modules not imported)."""
     parser = argparse.ArgumentParser(prog="pws", description=DESCRIPTION, epilog=EPILOG,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"pws_ros {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMANDS:
+    for name, summary in SUMMARIES.items():
+        if command not in ("*", name):
+            sub.add_parser(name, help=summary)
+            continue
         try:
-            module = importlib.import_module(f"pws_ros.commands.{name}")
+            module = importlib.import_module(f"pws_ros.commands.{module_name(name)}")
         except ModuleNotFoundError as exc:  # an optional command whose module is not installed
-            if exc.name != f"pws_ros.commands.{name}":
+            if exc.name != f"pws_ros.commands.{module_name(name)}":
                 raise
             continue
         module.register(sub)
     return parser
 
 
+def command_in(argv: list[str]) -> str | None:
+    """The command ``argv`` names (its first word that is not an option), if it is one of ``pws``'s."""
+    word = next((a for a in argv if not a.startswith("-")), None)
+    return word if word in SUMMARIES else None
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(command_in(argv))
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()

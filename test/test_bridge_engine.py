@@ -395,7 +395,7 @@ def test_self_audit_every_frame_and_a_wrong_bound_withdraws_the_certificate(mode
 def test_size_advice_for_models_much_larger_than_the_demo():
     """A 224x224 model on a 640x480 camera: render_factor 2 renders 448x448 and batch_size 256 holds
     154 MB of input per call: both are said; the shipped defaults (160x90) get no advice."""
-    from pws_ros.bridge.engine import size_advice
+    from pws_ros.bridge.sizing import size_advice
     from pws_ros.core.camera import CameraIntrinsics
     from pws_ros.core.imaging import make_imaging
 
@@ -408,7 +408,7 @@ def test_size_advice_for_models_much_larger_than_the_demo():
 
 def test_faster_batch_rule():
     """The rule of the start-up check on made-up timings: the small batch at >= BATCH_CHECK_GAIN as fast per image."""
-    from pws_ros.bridge.engine import BATCH_CHECK_GAIN, faster_batch
+    from pws_ros.bridge.sizing import BATCH_CHECK_GAIN, faster_batch
 
     assert faster_batch({4: 0.010, 32: 0.025}) == 4
     assert faster_batch({4: 0.010, 32: 0.010 * BATCH_CHECK_GAIN * 0.99}) is None

@@ -189,3 +189,53 @@ def test_cli_ray_address_needs_workers(bag, model, capsys):
 
     rc = main(["replay", str(bag), "--model", str(model), "--no-output", "--quiet", "--ray-address", "auto"])
     assert rc == 2 and "--ray-address needs --workers" in capsys.readouterr().err
+
+
+def _is_loopback(host: str) -> bool:
+    import ipaddress
+
+    ip = ipaddress.ip_address(host.split("%")[0])
+    mapped = getattr(ip, "ipv4_mapped", None)
+    return (mapped or ip).is_loopback
+
+
+@pytest.mark.slow
+def test_a_local_instance_listens_on_loopback_only(bag, model, tmp_path):
+    """`pws replay BAG --workers 2` (no --ray-address): every listening socket of the replay's process tree
+    (driver, gcs_server, raylet, agents, workers), sampled while it runs, is on 127.0.0.0/8 (or ::1); none
+    on every interface (0.0.0.0, ::) nor on the machine's network address."""
+    import subprocess
+    import sys
+
+    import psutil
+
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env.pop("RAY_ADDRESS", None)
+    cmd = [sys.executable, "-m", "pws_ros.cli", "replay", str(bag), "--workers", "2", "--no-output", "--quiet", "--model", str(model),
+           "--axes", "tz", "--n0", "8", "--n", "16", "--anchors", "2", "--max-frames", "3"]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    seen: dict[tuple[str, int], str] = {}
+    try:
+        while proc.poll() is None:
+            try:
+                tree = [psutil.Process(proc.pid)] + psutil.Process(proc.pid).children(recursive=True)
+            except psutil.Error:
+                break
+            for p in tree:
+                try:
+                    for c in p.net_connections(kind="inet"):
+                        if c.status == psutil.CONN_LISTEN:
+                            seen[(c.laddr.ip, c.laddr.port)] = p.name()
+                except psutil.Error:
+                    continue
+            time.sleep(0.2)
+        err = proc.communicate(timeout=300)[1]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err[-2000:]
+    names = set(seen.values())
+    assert any("gcs" in n for n in names) and any("raylet" in n for n in names), seen   # Ray's own servers were seen
+    outside = {f"{ip}:{port} ({name})" for (ip, port), name in seen.items() if not _is_loopback(ip)}
+    assert not outside, f"listening outside 127.0.0.0/8: {sorted(outside)}"

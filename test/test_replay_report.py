@@ -100,3 +100,25 @@ def test_write_report_files(tmp_path):
     empty = summarize([], axes=["tz"], units={"tz": "m"}, requested={"tz": 0.01}, frames_seen=0)
     write_report(tmp_path / "rep2", [], empty, ["tz"])
     assert (tmp_path / "rep2" / "frames.png").exists()
+
+
+def test_the_summary_counts_what_the_time_budget_did():
+    """Under a time budget the summary says how many axes were reduced, coarsened and over their share (by
+    how much at most), the frames over the budget, the longest frame and the start-up work left out."""
+    def budgeted(axis, spent, share, reduced, coarsened):
+        c = _cert(axis, "not_certified", 0.001, 0, 0.01)
+        c.bounds["time_budget"] = {"frame_budget_s": 10.0, "share_s": share, "spent_s": spent, "reduced": reduced,
+                                   "coarsened": coarsened, "over_budget": spent > share}
+        return c
+
+    recs = [FrameRecord(0, 10**9, "cam", "rgbd", [budgeted("tz", 4.0, 4.9, True, True), budgeted("ry", 6.5, 4.9, True, True)],
+                        {}, 10.5e3, 10.5e3, startup_ms=7000.0),
+            FrameRecord(1, 2 * 10**9, "cam", "rgbd", [budgeted("tz", 2.0, 4.9, False, False), budgeted("ry", 2.0, 4.9, True, False)],
+                        {}, 4.2e3, 4.2e3)]
+    s = summarize(recs, axes=["tz", "ry"], units={"tz": "m", "ry": "rad"}, requested={"tz": 0.01, "ry": 0.004}, frames_seen=2)
+    b = s["time_budget"]
+    assert (b["axes"], b["reduced"], b["coarsened"], b["axes_over_share"], b["frames_over_budget"]) == (4, 3, 2, 1, 1)
+    assert b["most_over_share_s"] == pytest.approx(1.6) and b["longest_frame_s"] == pytest.approx(10.5) and b["startup_s"] == 7.0
+    assert "time budget 10 s per frame: longest frame 10.5 s, 1 frame(s) over; of 4 axes 3 reduced, 2 coarsened, 1 over" in format_table(s)
+    plain = summarize(recs[:0], axes=["tz"], units={"tz": "m"}, requested={"tz": 0.01}, frames_seen=0)
+    assert "time_budget" not in plain

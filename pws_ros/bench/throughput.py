@@ -123,7 +123,7 @@ def budget_rows(config: Any, frames: list, budget: float) -> list[dict[str, Any]
         for b, eng in engines.items():
             t0 = time.perf_counter()
             res = eng.process(cloud, intr, stamp, frame_id=fid)
-            out[b] = (res, time.perf_counter() - t0)
+            out[b] = (res, time.perf_counter() - t0 - res.timings.get("startup", 0.0))   # start-up work is not the frame's
         for k, axis in enumerate(config.axes):
             row = {"stamp": stamp, "axis": axis}
             for b, (res, wall) in out.items():

@@ -13,17 +13,28 @@ calls, whichever way the core spends them: anchors sharing their noise, or the w
 ``num_anchors * n`` samples at the centre) and ``max_partitions`` (the grid the geometry renders and
 bounds). The configured sizes are kept when they fit; otherwise all shrink together (the anchors with
 the square root of the factor, n with the rest, n0 and the grid in proportion, n0 not below
-:data:`MIN_N0`), the largest that fits, found by bisection on the cost model. A frame that needs more
-work than fits gets a smaller radius, never more time; when even the least work (n0 = MIN_N0, one
-anchor, n = 1, 3 grid points) does not fit, the axis is not started (an ERROR certificate naming the
-budget). Under reduced sizes the engine also sets ``spread_estimation``: where fewer anchors are placed
+:data:`MIN_N0`, n not below :func:`answer_n`, the fewest samples with which a p_A bound can exceed 1/2),
+the largest that fits, found by bisection on the cost model. A frame that needs more work than fits
+gets a smaller radius, never more time.
+
+When even the least work (n0 = MIN_N0, one anchor, n = answer_n, 3 grid points) does not fit, the
+geometry is coarsened (:func:`size_work`, the :class:`Level` s in order): surfel frames rendered at
+render factor 1 (the classifier's input size, from binned camera pixels: far fewer rendered pixels
+than the configured factor), then fewer rounds of the frontier refinement (``frontier_rounds``). When
+the coarsest least work does not fit either, it runs anyway: the axis answers (a smaller radius)
+flagged as over budget with the time it took; lack of time alone is never an ERROR. The start-up work
+(the warm-ups that measure this machine, the batch size check) is never charged to a frame.
+
+Under reduced sizes the engine also sets ``spread_estimation``: where fewer anchors are placed
 than sized and they fall short of the radius, the ``num_anchors * n`` estimation samples go to the
 anchors there are (:class:`~pws_ros.core.certify.CertifyConfig`), so the sized time is spent. ``n0``
 only selects the label and plans the anchors: fewer selection samples never make a certificate wrong,
 only its anchors less well placed.
 
-Why the statistics stay valid: the sizes are a function of the budget and the machine's measured
-timings only, fixed before the axis draws any sample, so they are independent of the axis' noise.
+Why the statistics stay valid: the sizes (and the imaging and frontier rounds of a coarser level) are a
+function of the budget and the machine's measured timings only, fixed before the axis draws any sample,
+so they are independent of the axis' noise. The bounds hold on any grid and for any imaging, and the
+certificate records the imaging it used.
 Clopper-Pearson and the Bonferroni split hold conditionally on them, exactly as for sizes written in
 the configuration. Sampling never stops early because time runs out (a stopping rule that would look
 at the counts).
@@ -45,19 +56,38 @@ FRONTIER_POINTS = 2 * FRONTIER_ROUNDS * (FRONTIER_PARTS - 1)   # points the fron
 WARMUP_POINTS = 9      # grid points of the geometry warm-up on the first frame
 
 
+def frontier_points(rounds: int = FRONTIER_ROUNDS) -> int:
+    """Points the frontier refinement may add to a grid in ``rounds`` rounds a side."""
+    return 2 * int(rounds) * (FRONTIER_PARTS - 1)
+
+
+def answer_n(alpha: float) -> int:
+    """The fewest estimation samples with which a one-sided Clopper-Pearson bound at level ``alpha`` can
+    exceed 1/2 (all of them the top class: ``alpha ** (1 / n) > 1/2``); fewer can certify nothing."""
+    return int(math.floor(math.log2(1.0 / min(max(float(alpha), 1e-300), 0.5)))) + 1
+
+
 @dataclass
 class CostModel:
-    """Seconds per unit of work on this machine (NaN until measured)."""
+    """Seconds per unit of work on this machine (NaN until measured). The geometry is kept for the
+    configured imaging and, once measured (only when a budget needs it), for the coarse one (render
+    factor 1, :class:`Level`)."""
 
     batch_s: float = math.nan    # one classifier call, whatever its size (noise buffer, launch, synchronisation)
     image_s: float = math.nan    # one image of a call (noise, denoiser, classifier)
     point_s: float = math.nan    # one grid point: its frame rendered, its segment bounded, distance rows to anchors
     fixed_s: float = math.nan    # one axis whatever its sizes (planning, renderer set-up, previews)
     updates: int = 0             # observations folded in after the warm-up
+    coarse_point_s: float = math.nan   # point_s and fixed_s at the coarse imaging (render factor 1)
+    coarse_fixed_s: float = math.nan
 
     @property
     def ready(self) -> bool:
         return all(math.isfinite(v) for v in (self.batch_s, self.image_s, self.point_s, self.fixed_s))
+
+    def has(self, coarse: bool) -> bool:
+        """The geometry of that imaging is measured."""
+        return math.isfinite(self.coarse_point_s if coarse else self.point_s)
 
     # ---- predictions ----
     def batches(self, n0: int, anchors: int, n: int, batch_size: int) -> int:
@@ -70,11 +100,13 @@ class CostModel:
     def inference_s(self, n0: int, anchors: int, n: int, batch_size: int) -> float:
         return self.batch_s * self.batches(n0, anchors, n, batch_size) + self.image_s * (n0 + anchors * n)
 
-    def geometry_s(self, points: int) -> float:
-        return self.point_s * (int(points) + FRONTIER_POINTS)
+    def geometry_s(self, points: int, rounds: int = FRONTIER_ROUNDS, coarse: bool = False) -> float:
+        return (self.coarse_point_s if coarse else self.point_s) * (int(points) + frontier_points(rounds))
 
-    def axis_s(self, n0: int, anchors: int, n: int, points: int, batch_size: int) -> float:
-        return self.fixed_s + self.inference_s(n0, anchors, n, batch_size) + self.geometry_s(points)
+    def axis_s(self, n0: int, anchors: int, n: int, points: int, batch_size: int, rounds: int = FRONTIER_ROUNDS,
+               coarse: bool = False) -> float:
+        fixed = self.coarse_fixed_s if coarse else self.fixed_s
+        return fixed + self.inference_s(n0, anchors, n, batch_size) + self.geometry_s(points, rounds, coarse)
 
     # ---- measurements ----
     def set_inference(self, t_one: float, t_full: float, batch_size: int) -> None:
@@ -86,14 +118,18 @@ class CostModel:
         self.image_s = image
         self.batch_s = max(0.0, t_one - image)
 
-    def set_geometry(self, fixed_s: float, point_s: float) -> None:
-        self.fixed_s, self.point_s = max(0.0, fixed_s), max(0.0, point_s)
+    def set_geometry(self, fixed_s: float, point_s: float, coarse: bool = False) -> None:
+        if coarse:
+            self.coarse_fixed_s, self.coarse_point_s = max(0.0, fixed_s), max(0.0, point_s)
+        else:
+            self.fixed_s, self.point_s = max(0.0, fixed_s), max(0.0, point_s)
 
-    def observe(self, cert: Any, wall_s: float, batch_size: int) -> None:
-        """Fold in one axis' certificate (its timings, calls and grid) and its wall time in the engine."""
+    def observe(self, cert: Any, wall_s: float, batch_size: int, coarse: bool = False) -> None:
+        """Fold in one axis' certificate (its timings, calls and grid) and its wall time in the engine
+        (``coarse``: made with the coarse imaging, whose geometry it updates)."""
         t = getattr(cert, "timings", None) or {}
         calls = int(getattr(cert, "classifier_calls", 0) or 0)
-        if not self.ready or calls <= 0 or "inference" not in t:
+        if not self.ready or not self.has(coarse) or calls <= 0 or "inference" not in t:
             return
         w = EMA_WEIGHT
         n0 = int(cert.n0)
@@ -107,11 +143,29 @@ class CostModel:
             self.image_s *= r
         geometry = sum(float(t.get(k, 0.0)) for k in ("render", "bounds", "statistics"))
         points = int(getattr(cert, "frames_rendered", 0) or 0) + int((cert.bounds or {}).get("frontier_splits", 0) or 0)
+        fixed = max(0.0, float(wall_s) - float(t["inference"]) - geometry)
+        p_name, f_name = ("coarse_point_s", "coarse_fixed_s") if coarse else ("point_s", "fixed_s")
         if points > 0:
-            self.point_s = (1 - w) * self.point_s + w * geometry / points
-        fixed = float(wall_s) - float(t["inference"]) - geometry
-        self.fixed_s = (1 - w) * self.fixed_s + w * max(0.0, fixed)
+            setattr(self, p_name, (1 - w) * getattr(self, p_name) + w * geometry / points)
+        setattr(self, f_name, (1 - w) * getattr(self, f_name) + w * fixed)
         self.updates += 1
+
+
+@dataclass(frozen=True)
+class Level:
+    """How coarse an axis' geometry is: ``coarse``, surfel frames at render factor 1 (the classifier's
+    input size, binned camera pixels) instead of the configured factor; ``rounds`` of the frontier
+    refinement a side."""
+
+    coarse: bool = False
+    rounds: int = FRONTIER_ROUNDS
+
+
+def levels(can_coarsen: bool) -> list[Level]:
+    """The levels in the order a budget tries them: the configured geometry, render factor 1 (where it
+    is coarser), then fewer frontier rounds (2, 1, none)."""
+    out = [Level(False, FRONTIER_ROUNDS)] + ([Level(True, FRONTIER_ROUNDS)] if can_coarsen else [])
+    return out + [Level(out[-1].coarse, r) for r in (2, 1, 0) if r < FRONTIER_ROUNDS]
 
 
 @dataclass(frozen=True)
@@ -125,22 +179,32 @@ class Sizes:
     share_s: float          # the axis' share of the frame's budget
     predicted_s: float      # what the cost model predicts for these sizes (at most SAFETY * share_s when fits)
     reduced: bool           # smaller than configured
-    fits: bool              # False: even the least work is predicted above the share (the axis is not started)
+    fits: bool              # False: even the least work of the coarsest level is predicted above the share (it runs
+                            # anyway, flagged as over budget)
+    coarse: bool = False    # the geometry of a coarser Level: the imaging at render factor 1 ...
+    frontier_rounds: int = FRONTIER_ROUNDS   # ... and these frontier rounds
+
+    @property
+    def coarsened(self) -> bool:
+        return self.coarse or self.frontier_rounds < FRONTIER_ROUNDS
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 
 
 def size_axis(share_s: float, costs: CostModel, *, n0: int, n: int, num_anchors: int, max_partitions: int,
-              batch_size: int, per_point: bool = False, safety: float = SAFETY) -> Sizes:
-    """The largest sizes (configured ones at most) whose predicted time is within ``safety * share_s``.
+              batch_size: int, per_point: bool = False, safety: float = SAFETY, min_n: int = 1,
+              level: Level = Level()) -> Sizes:
+    """The largest sizes (configured ones at most) whose predicted time at ``level`` is within
+    ``safety * share_s``; ``fits`` False (and the least work) when none is.
 
     ``per_point``: p_A is estimated at every grid frame (coverage pairwise or paper), so the estimated
-    frames are the grid points, not ``num_anchors``. A function of the budget, the configuration and
-    ``costs`` only (nothing about the frame's samples)."""
+    frames are the grid points, not ``num_anchors``. ``min_n``: the least n (:func:`answer_n`). A
+    function of the budget, the configuration and ``costs`` only (nothing about the frame's samples)."""
     target = safety * float(share_s)
     P0 = max(MIN_POINTS, int(max_partitions))
     A0, N0, S0 = max(1, int(num_anchors)), max(1, int(n)), max(1, int(n0))
+    n_least = min(N0, max(1, int(min_n)))
 
     def at(s: float) -> tuple[int, int, int, int]:
         if s >= 1.0:
@@ -148,20 +212,23 @@ def size_axis(share_s: float, costs: CostModel, *, n0: int, n: int, num_anchors:
         p = min(P0, max(MIN_POINTS, int(math.floor(s * P0))))
         sel = min(S0, max(MIN_N0, int(math.floor(s * S0))))
         if per_point:
-            return sel, A0, min(N0, max(1, int(math.floor(s * N0)))), p
+            return sel, A0, min(N0, max(n_least, int(math.floor(s * N0)))), p
         a = min(A0, max(1, int(math.floor(A0 * math.sqrt(s)))))
-        nn = min(N0, max(1, int(math.floor(s * A0 * N0 / a))))
+        nn = min(N0, max(n_least, int(math.floor(s * A0 * N0 / a))))
         return sel, a, nn, p
 
     def cost(sz: tuple[int, int, int, int]) -> float:
-        return costs.axis_s(sz[0], sz[3] if per_point else sz[1], sz[2], sz[3], batch_size)
+        return costs.axis_s(sz[0], sz[3] if per_point else sz[1], sz[2], sz[3], batch_size, level.rounds, level.coarse)
+
+    def sizes(sz: tuple[int, int, int, int], reduced: bool, fits: bool) -> Sizes:
+        return Sizes(*sz, float(share_s), cost(sz), reduced, fits, level.coarse, level.rounds)
 
     full = at(1.0)
     if cost(full) <= target:
-        return Sizes(*full, float(share_s), cost(full), False, True)
+        return sizes(full, False, True)
     least = at(0.0)
-    if cost(least) > target:
-        return Sizes(*least, float(share_s), cost(least), True, False)
+    if not cost(least) <= target:
+        return sizes(least, True, False)
     lo, hi = 0.0, 1.0
     for _ in range(40):
         mid = 0.5 * (lo + hi)
@@ -169,8 +236,21 @@ def size_axis(share_s: float, costs: CostModel, *, n0: int, n: int, num_anchors:
             lo = mid
         else:
             hi = mid
-    best = at(lo)
-    return Sizes(*best, float(share_s), cost(best), True, True)
+    return sizes(at(lo), True, True)
+
+
+def size_work(share_s: float, costs: CostModel, *, can_coarsen: bool, **conf: Any) -> Sizes:
+    """The sizes at the first :func:`levels` whose least work fits ``share_s`` (a level whose imaging is not
+    measured keeps the configured imaging, with its frontier rounds); where none fits, the least work of
+    the coarsest level (``fits`` False: it runs anyway, over budget). ``conf``: what :func:`size_axis`
+    takes besides the share and the costs."""
+    out = None
+    for level in levels(can_coarsen):
+        out = size_axis(share_s, costs, level=level if costs.has(level.coarse) else Level(False, level.rounds), **conf)
+        if out.fits:
+            break
+    assert out is not None
+    return out
 
 
 def _noisy_calls(model: Any, shape: tuple[int, int], batch_size: int, sigma: float, denoiser: Any, warm: int):
@@ -217,5 +297,5 @@ def measure_per_image(model: Any, shape: tuple[int, int], batch_sizes: tuple[int
     return out
 
 
-__all__ = ["CostModel", "EMA_WEIGHT", "FRONTIER_POINTS", "MIN_N0", "MIN_POINTS", "SAFETY", "Sizes", "WARMUP_POINTS", "measure_inference",
-           "measure_per_image", "size_axis"]
+__all__ = ["CostModel", "EMA_WEIGHT", "FRONTIER_POINTS", "Level", "MIN_N0", "MIN_POINTS", "SAFETY", "Sizes", "WARMUP_POINTS",
+           "answer_n", "frontier_points", "levels", "measure_inference", "measure_per_image", "size_axis", "size_work"]

@@ -8,7 +8,8 @@ The cloud stays metric in the camera optical frame; frames are made by the imagi
 :mod:`pws_ros.core.imaging` (``imaging``: ``surfel`` renders a centred crop of the camera at its native
 resolution and block-averages it to the model's input size; ``paper`` rescales the camera to the
 model's input size, or ``render_width x render_height``). One :class:`~pws_ros.core.imaging.Imaging`
-per frame serves every axis (its masked border is computed from all the frame's radii).
+per frame serves every axis (its masked border is computed from all the frame's radii; a time budget's
+coarser level renders an axis at render factor 1, :mod:`pws_ros.bridge.sizing`).
 
 Risk and noise: the frame's statement (every axis together) holds with probability at least
 ``1 - alpha``: each of the ``A`` axes spends ``alpha / A`` (Bonferroni), recorded in each certificate as
@@ -18,10 +19,8 @@ loaded once. A ``cuda:N`` device that is not available falls back to the CPU wit
 ``log``. Any failure of one axis becomes an ERROR certificate for that axis (never an exception):
 one bad axis or frame never stops a node.
 
-(Over the usual ~450 lines: the stages share the lazily loaded model, the configuration and the time
-budget's cost model. The budget's warm-ups, :meth:`FrameCertifier.warm_up_inference` and
-:meth:`FrameCertifier.warm_up_geometry`, are the seam where it would split next, into
-:mod:`pws_ros.bridge.budget`.)
+The decisions on how much work a frame gets (the batch size of classifier calls, the time budget's
+warm-ups, sizes and coarser geometry) are :mod:`pws_ros.bridge.sizing`'s (``FrameCertifier.budget``).
 """
 from __future__ import annotations
 
@@ -45,9 +44,8 @@ from .preview import render_previews
 from .scheme import PlanBundle, rendered_plan_from_parts
 from .selfaudit import audit_certificate
 from .assembly import AssembledFrame
-from .budget import WARMUP_POINTS, CostModel, Sizes, measure_inference, measure_per_image, size_axis
-
-LogFn = Callable[[str, str], None]   # (level: "info" | "warn" | "error", message)
+from .budget import Sizes
+from .sizing import COARSE_FACTOR, FrameBudget, LogFn, size_advice
 
 
 def _default_log(level: str, message: str) -> None:
@@ -130,11 +128,9 @@ class FrameCertifier:
         # parameter change gives it another working volume, background or uncovered rule
         self._imaging_described: tuple | None = None
         self._sigma_checked: float | None = None
-        self._batch_checked = False       # the batch size was timed against a small one (check_batch_size)
         self.batch_size = int(config.batch_size)   # images per classifier call: the configured, or a faster smaller one
         self._frames_seen = 0
-        self.costs = CostModel()          # time_budget_s: what work costs on this machine (bridge.budget)
-        self._geometry_warm = False
+        self.budget = FrameBudget(self)   # time_budget_s: the cost model and each axis' work (bridge.sizing)
         if load:
             self.model  # noqa: B018 - load now
             self.denoiser  # noqa: B018
@@ -143,7 +139,7 @@ class FrameCertifier:
             if self.render_size is not None:
                 self.check_batch_size(self.render_size)   # at start, not in the first frame's time
             if config.time_budget_s > 0 and getattr(self._model, "input_size", None) is not None:
-                self.warm_up_inference(tuple(self._model.input_size))
+                self.budget.warm_up_inference(tuple(self._model.input_size))
 
     # ---- lazily loaded resources ----
     @property
@@ -184,8 +180,9 @@ class FrameCertifier:
         size = getattr(self.model, "input_size", None)
         return (int(size[0]), int(size[1])) if size is not None else None
 
-    def imaging_for(self, intr: CameraIntrinsics, cloud: Cloud | None = None) -> Any:
-        """The :class:`~pws_ros.core.imaging.Imaging` of one frame (its border from all configured radii)."""
+    def imaging_for(self, intr: CameraIntrinsics, cloud: Cloud | None = None, render_factor: int | None = None) -> Any:
+        """The :class:`~pws_ros.core.imaging.Imaging` of one frame (its border from all configured radii);
+        ``render_factor`` (a time budget's coarser level) replaces the configured one."""
         from ..core.imaging import make_imaging
 
         c = self.config
@@ -197,8 +194,9 @@ class FrameCertifier:
                 self.log("warn", f"camera {intr.width}x{intr.height} is rendered at {size[1]}x{size[0]}: the aspect ratio changes "
                                  f"(fx and fy are scaled differently; imaging: surfel crops instead)")
         im = make_imaging(c.imaging, intr, size, background=c.background_value, border=c.border, cloud=cloud, radii=c.radii,
-                          render_factor=c.render_factor, uncovered=c.uncovered, volume=c.working_volume)
-        if im.kind == "surfel" and self._imaging_described != (im.volume, im.background, im.uncovered):
+                          render_factor=c.render_factor if render_factor is None else int(render_factor),
+                          uncovered=c.uncovered, volume=c.working_volume)
+        if render_factor is None and im.kind == "surfel" and self._imaging_described != (im.volume, im.background, im.uncovered):
             self._imaging_described = (im.volume, im.background, im.uncovered)
             from ..core.certify import grid_cap, segment_bytes
 
@@ -212,7 +210,8 @@ class FrameCertifier:
 
     def certify_config(self, axis: str | None = None, stamp_ns: int = 0, sizes: Sizes | None = None):
         """The core's CertifyConfig; for an axis of a frame: ``alpha / len(axes)`` and the derived seed;
-        with ``sizes`` (a time budget, :mod:`.budget`): their ``n0``, ``num_anchors``, ``n`` and ``max_partitions``."""
+        with ``sizes`` (a time budget, :mod:`.budget`): their ``n0``, ``num_anchors``, ``n``, ``max_partitions``
+        and ``frontier_rounds``."""
         from dataclasses import replace
 
         from ..core.smoothing import derive_seed
@@ -226,72 +225,18 @@ class FrameCertifier:
             # a budget that shrank the work: what it sized is spent (core.certify.CertifyConfig.spread_estimation)
             cfg = replace(cfg, spread_estimation=True, n0=int(sizes.n0), num_anchors=int(sizes.num_anchors), n=int(sizes.n),
                           max_partitions=int(sizes.max_partitions), min_partitions=min(int(cfg.min_partitions), int(sizes.max_partitions)))
+        if sizes is not None:   # a coarser level (budget.Level): its frontier rounds and render factor
+            cfg = replace(cfg, frontier_rounds=int(sizes.frontier_rounds),
+                          render_factor=COARSE_FACTOR if sizes.coarse else cfg.render_factor)
         return cfg
-
-    # ---- time budget (time_budget_s; pws_ros.bridge.budget) ----
-    def warm_up_inference(self, shape: tuple[int, int]) -> None:
-        """Measure a classifier call of 1 image and of ``batch_size`` images at input ``shape`` (H, W)."""
-        c = self.config
-        t_one, t_full = measure_inference(self.model, shape, self.batch_size, float(c.sigma), denoiser=self.denoiser)
-        self.costs.set_inference(t_one, t_full, self.batch_size)
-        self.log("info", f"time budget {c.time_budget_s:g} s per frame: a classifier call of {self.batch_size} images takes "
-                         f"{1000 * t_full:.1f} ms here ({1000 * t_one:.1f} ms for 1)")
-
-    def warm_up_geometry(self, cloud: Cloud, imaging: Any, axis: str, dense_cloud: Cloud | None = None) -> None:
-        """Measure planning and the geometry of a small grid (WARMUP_POINTS points) of this frame."""
-        from ..core.certify import bounds_bytes
-        from ..core.imaging import make_renderer, segment_bounds
-
-        src = self.source_cloud(cloud, dense_cloud)
-        for points in (3, WARMUP_POINTS):   # the first pass pays what is paid once (lazy initialisation): not counted
-            t0 = time.perf_counter()
-            plan = self.plan_axis(src, imaging, axis, max_partitions=points)
-            renderer = make_renderer(src, imaging, axis, device=self.device,
-                                     alpha_range=(float(plan.alphas[0]), float(plan.alphas[-1])))
-            t1 = time.perf_counter()
-            renderer.render_batch(plan.alphas)
-            segment_bounds(renderer, src, imaging, plan.alphas, max_bytes=bounds_bytes(self.certify_config()))
-            t2 = time.perf_counter()
-        per_point = (t2 - t1) / max(1, plan.num_partitions)
-        self.costs.set_geometry(t1 - t0, per_point)
-        self._geometry_warm = True
-        self.log("info", f"time budget: planning and set-up take {1000 * (t1 - t0):.1f} ms, the geometry {1000 * per_point:.1f} "
-                         f"ms per grid point (warm-up on the first frame, {plan.num_partitions} points)")
-
-    def _budget_ready(self, cloud: Cloud, imaging: Any, dense_cloud: Cloud | None) -> None:
-        """The warm-ups not yet made: the classifier (when its input size was unknown at start), the geometry
-        on the first frame (on the first axis that plans; an axis that cannot is reported by its certificate)."""
-        if not math.isfinite(self.costs.batch_s):
-            self.warm_up_inference(tuple(imaging.out_shape))
-        for axis in self.config.axes:
-            if self._geometry_warm:
-                break
-            try:
-                self.warm_up_geometry(cloud, imaging, axis, dense_cloud)
-            except PwsError:
-                continue
-
-    def size_for(self, share_s: float) -> Sizes:
-        """The sizes of one axis for ``share_s`` seconds from the current cost model (:func:`.budget.size_axis`)."""
-        c = self.config
-        return size_axis(share_s, self.costs, n0=int(c.n0), n=int(c.n), num_anchors=int(c.num_anchors),
-                         max_partitions=int(c.max_partitions), batch_size=self.batch_size,
-                         per_point=c.coverage != "anchors")
 
     def _stamp(self, cert: Certificate) -> Certificate:
         cert.frame_alpha = float(self.config.alpha)
         return cert
 
     def check_batch_size(self, shape: tuple[int, int]) -> float:
-        """Once (at start when the input size is known then, else before the first certificate): the batch
-        size of this engine's classifier calls on ``shape`` inputs, from :func:`choose_batch_size`. Returns
-        the seconds it took (0 when nothing was timed)."""
-        if self._batch_checked:
-            return 0.0
-        self._batch_checked = True
-        self.batch_size, spent = choose_batch_size(self.model, shape, self.batch_size, float(self.config.sigma), device=self.device,
-                                                   denoiser=self.denoiser, log=self.log)
-        return spent
+        """Once: the batch size of this engine's classifier calls (:meth:`.sizing.FrameBudget.check_batch_size`)."""
+        return self.budget.check_batch_size(shape)
 
     def _check_sigma(self) -> None:
         """Warn (once per value) when the pixel noise sigma differs from the sigma the model's
@@ -491,126 +436,48 @@ class FrameCertifier:
             certs = [self.error_for(a, str(exc)) for a in self.config.axes]
         self._frames_seen += 1
         audit = self.config.audit_every > 0 and (self._frames_seen - 1) % self.config.audit_every == 0
-        budget = float(self.config.time_budget_s)
+        budgeted = imaging is not None and self.budget.on
+        startup = self.check_batch_size(tuple(imaging.out_shape)) if imaging is not None else 0.0   # once; start-up work
+        coarse: list[Any] = []   # the frame's imaging at the coarse level, made when first needed
+
+        def coarse_imaging() -> Any:
+            if not coarse:
+                coarse.append(self.imaging_for(intr, cloud, render_factor=COARSE_FACTOR))
+            return coarse[0]
+
         share = 0.0
-        checked = self.check_batch_size(tuple(imaging.out_shape)) if imaging is not None else 0.0   # once; not the budget's
-        if imaging is not None and budget > 0 and self.config.method != "cms":
-            try:
-                self._budget_ready(cloud, imaging, dense_cloud)
-            except PwsError:
-                pass   # the axes report what fails (planning, rendering) in their certificates
-            # every axis gets an even share of what is left of the frame's budget after the imaging (and warm-up)
-            share = max(0.0, budget - (time.perf_counter() - t0 - checked)) / max(1, len(self.config.axes))
+        if budgeted:
+            startup += self.budget.ready(cloud, imaging, dense_cloud, coarse_imaging)
+            share = self.budget.share(time.perf_counter() - t0 - startup)   # of what is left after the frame's imaging
         if imaging is not None:
             for axis in self.config.axes:
                 t1 = time.perf_counter()
                 if should_stop is not None and should_stop():
                     certs.append(self.error_for(axis, "shutting down"))
-                else:
-                    sizes = self.size_for(share) if budget > 0 and self.config.method != "cms" and self.costs.ready else None
-                    if sizes is not None and not sizes.fits:
-                        cert = self.error_for(axis, f"time budget: {share:.3g} s for this axis ({budget:g} s per frame) is less than "
-                                                    f"the least work takes here (n0 = {sizes.n0}, one anchor, n = 1, "
-                                                    f"{sizes.max_partitions} grid points: "
-                                                    f"about {sizes.predicted_s:.3g} s)")
-                    else:
-                        cert = self.certify_axis(cloud, imaging, axis, dense_cloud, preview_every, previews, plans,
-                                                 stamp_ns=int(stamp_ns), sizes=sizes)
-                    cert.filled_points = filled_drawn(cloud, imaging)   # the statement is about the cloud with filled depth
-                    if sizes is not None:
-                        spent = time.perf_counter() - t1
-                        if sizes.fits:
-                            self.costs.observe(cert, spent, self.batch_size)
-                        self._record_budget(cert, sizes, budget, spent)
-                    if audit and cert.status != "error" and axis in plans:
-                        audit_certificate(cert, self.source_cloud(cloud, dense_cloud), imaging, plans[axis], device=self.device,
-                                          num_anchors=self.config.num_anchors, audit_poses=self.config.audit_poses, log=self.log)
-                    certs.append(cert)
+                    timings[axis] = time.perf_counter() - t1
+                    continue
+                sizes = self.budget.size(share, imaging) if budgeted and self.budget.costs.ready else None
+                used = imaging
+                if sizes is not None and sizes.coarse:
+                    try:
+                        used = coarse_imaging()
+                    except PwsError:   # cannot happen where the coarse level was measured; the configured imaging then
+                        sizes = self.budget.size(share, imaging, coarse_ok=False)
+                cert = self.certify_axis(cloud, used, axis, dense_cloud, preview_every, previews, plans,
+                                         stamp_ns=int(stamp_ns), sizes=sizes)
+                cert.filled_points = filled_drawn(cloud, used)   # the statement is about the cloud with filled depth
+                if sizes is not None:
+                    self.budget.record(cert, sizes, time.perf_counter() - t1, used)
+                if audit and cert.status != "error" and axis in plans:
+                    audit_certificate(cert, self.source_cloud(cloud, dense_cloud), used, plans[axis], device=self.device,
+                                      num_anchors=self.config.num_anchors, audit_poses=self.config.audit_poses, log=self.log)
+                certs.append(cert)
                 timings[axis] = time.perf_counter() - t1
-        timings["total"] = time.perf_counter() - t0
+        if startup > 0:
+            timings["startup"] = startup   # warm-ups and the batch size check: not the frame's work (nor in "total")
+        timings["total"] = time.perf_counter() - t0 - startup
         return FrameResult(int(stamp_ns), frame_id or intr.frame_id, certs, plans,
                            imaging.camera if imaging is not None else None, timings, previews, imaging)
 
-    def _record_budget(self, cert: Certificate, sizes: Sizes, budget: float, spent: float) -> None:
-        """What the certificate rests on under a time budget: ``bounds["time_budget"]`` (the frame's budget, the
-        axis' share, the time spent, the sizes used and configured, the cost model they came from) and
-        ``timings["budget"]`` (the axis' share, seconds)."""
-        c = self.config
-        cert.timings["budget"] = float(sizes.share_s)
-        cert.bounds["time_budget"] = {
-            "frame_budget_s": float(budget), "share_s": float(sizes.share_s), "spent_s": float(spent),
-            "predicted_s": float(sizes.predicted_s), "reduced": bool(sizes.reduced), "fits": bool(sizes.fits),
-            "n0": int(sizes.n0), "num_anchors": int(sizes.num_anchors), "n": int(sizes.n), "max_partitions": int(sizes.max_partitions),
-            "configured": {"n0": int(c.n0), "num_anchors": int(c.num_anchors), "n": int(c.n), "max_partitions": int(c.max_partitions)},
-            "costs": {k: float(v) for k, v in asdict(self.costs).items()},
-        }
 
-
-BATCH_CHECK_SMALL = 4       # check_batch_size: the small batch timed against the configured one
-BATCH_CHECK_LARGEST = 32    # ... the configured one timed at most at this size (a larger call costs seconds and GB)
-BATCH_CHECK_GAIN = 1.25     # ... used when the small batch is at least this much faster per image
-DEMO_RENDER_PIXELS = 320 * 180   # what the shipped defaults render (640x480 camera, 160x90 model, render_factor 2)
-DEMO_INPUT_PIXELS = 160 * 90
-
-
-def size_advice(imaging: Any, batch_size: int) -> list[str]:
-    """Warnings for a classifier input much larger than the demo model's (bring-your-own models): the
-    bounds' cost grows with the rendered pixels, a classifier call's memory with batch_size x input."""
-    out = []
-    h, w = imaging.out_shape
-    rendered = imaging.camera.width * imaging.camera.height
-    if imaging.kind == "surfel" and imaging.factor > 1 and rendered > 2 * DEMO_RENDER_PIXELS:
-        out.append(f"render_factor {imaging.factor} renders {imaging.camera.width}x{imaging.camera.height} for a {w}x{h} model "
-                   f"({rendered / DEMO_RENDER_PIXELS:.1f}x the pixels of the shipped defaults): the bounds take about that much "
-                   f"longer; render_factor: 1 renders {w}x{h} from camera bins (measured on a 640x480 Kinect frame with a "
-                   "224x224 EfficientNet-Lite0: 13-19 s per axis instead of 26-29 s)")
-    if batch_size * h * w > 2 * 256 * DEMO_INPUT_PIXELS:
-        out.append(f"batch_size {batch_size} of {w}x{h} inputs: one classifier call holds {batch_size * h * w * 12 / 2**20:.0f} MiB "
-                   "of input and several times that in activations; on a CPU lower it (batch_size 32 with a 224x224 "
-                   "EfficientNet-Lite0: peak memory 1.4 GB instead of 3.9 GB, inference 1.6x as fast)")
-    return out
-
-
-def choose_batch_size(model: Any, shape: tuple[int, int], batch_size: int, sigma: float, *, device: str,
-                      denoiser: Any = None, log: LogFn | None = None) -> tuple[int, float]:
-    """(batch size, seconds spent): on a CPU and for an input over twice the demo model's, noisy classifier
-    calls of ``batch_size`` images (at most BATCH_CHECK_LARGEST) are timed against calls of BATCH_CHECK_SMALL,
-    and the small ones are chosen when they are at least BATCH_CHECK_GAIN as fast per image
-    (:func:`faster_batch`): a large model on a CPU often is, its activations leaving the cache. Else
-    ``batch_size`` as it is, untimed. The certificates do not depend on the batch size (the noise is drawn
-    one image at a time, :class:`~pws_ros.core.smoothing.SmoothedClassifier`); a smaller call only needs
-    less memory. ``log(level, message)`` hears what was measured and chosen."""
-    h, w = int(shape[0]), int(shape[1])
-    if str(device) != "cpu" or int(batch_size) <= BATCH_CHECK_SMALL or h * w <= 2 * DEMO_INPUT_PIXELS:
-        return int(batch_size), 0.0
-    say = log or (lambda level, message: None)
-    large = min(int(batch_size), BATCH_CHECK_LARGEST)
-    t0 = time.perf_counter()
-    try:
-        per_image = measure_per_image(model, (h, w), (BATCH_CHECK_SMALL, large), float(sigma), denoiser=denoiser)
-    except Exception as e:  # noqa: BLE001 - a check must not stop certification; the certificate reports real failures
-        say("info", f"batch size check skipped: {e}")
-        return int(batch_size), time.perf_counter() - t0
-    spent = time.perf_counter() - t0
-    timed = ", ".join(f"{1000 * t:.1f} ms per image in calls of {b}" for b, t in per_image.items())
-    small = faster_batch(per_image)
-    if small is None:
-        say("info", f"batch size check: {timed}; batch_size {batch_size} kept ({spent:.1f} s)")
-        return int(batch_size), spent
-    say("info", f"batch size check: {timed}: classifier calls of {small} images from now on, "
-                f"{per_image[large] / per_image[small]:.1f}x as fast per image as {large} (configured batch_size {batch_size}; "
-                f"the certificates do not depend on it; batch_size: {small} skips this check; {spent:.1f} s)")
-    return small, spent
-
-
-def faster_batch(per_image: dict[int, float]) -> int | None:
-    """The smallest batch size timed when it is at least BATCH_CHECK_GAIN as fast per image as the largest
-    (``per_image``: seconds per image in calls of each size), else None."""
-    small, large = min(per_image), max(per_image)
-    if small >= large or per_image[small] <= 0 or per_image[large] < BATCH_CHECK_GAIN * per_image[small]:
-        return None
-    return small
-
-
-__all__ = ["BATCH_CHECK_GAIN", "BATCH_CHECK_LARGEST", "BATCH_CHECK_SMALL", "FrameCertifier", "FrameResult", "LogFn",
-           "choose_batch_size", "faster_batch", "resolve_device_with_fallback", "size_advice"]
+__all__ = ["FrameCertifier", "FrameResult", "LogFn", "resolve_device_with_fallback"]

@@ -151,8 +151,9 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("time_budget_s", 0.0, "time budget per frame, split evenly over its axes: the certifier measures what a "
               "classifier call and the geometry cost on this machine (a warm-up, then every axis) and sizes n0, num_anchors, n and "
               "max_partitions of each axis (never above the configured ones) before it draws any sample, so that the axis "
-              "finishes within its share; a frame that needs more gets a smaller radius, never more time; 0 = off (the "
-              "configured sizes)", range=(0.0, 86400.0), nodes=("pipeline",), unit="s"),
+              "finishes within its share; a frame that needs more gets a smaller radius, never more time; where even the least "
+              "work does not fit, the geometry is coarsened (render factor 1, fewer frontier rounds) and the axis still answers, "
+              "flagged over budget with the time it took; start-up work is not charged to a frame; 0 = off (the configured sizes)", range=(0.0, 86400.0), nodes=("pipeline",), unit="s"),
     ParamSpec("audit_every", 0, "self-audit every k-th frame: re-render poses inside every segment of each certified axis "
               "(audit_poses per segment) and check every bound the certificate used; a violation turns that axis to "
               "ERROR; 0 = off", range=(0, 1_000_000), nodes=_CERT),

@@ -9,13 +9,14 @@ from ..core.coverage import anchor_indices
 from ..core.imaging import make_imaging, make_renderer, plan_for, segment_bounds
 from ..core.motion import UNITS
 from .common import add_imaging_size_arg, add_output_args, add_plan_args, add_scene_args, add_drawing_args, emit, load_scene, positive_int, volume_from_args, background_from_args, add_background_arg
+from . import SUMMARIES
 
 MAX_LISTED = 20
 
 
 def register(sub) -> None:
     d = CertifyConfig()
-    p = sub.add_parser("audit", help="self-audit: check a plan's per-segment bounds on densely re-rendered poses",
+    p = sub.add_parser("audit", help=SUMMARIES["audit"],
                        description="Plan the grid as `pws certify` does, compute the per-segment bounds the certificate "
                                    "rests on (pair bound B_i of the paper and pairwise rules, anchor distances D_i of the "
                                    "anchors rule), then re-render poses inside every segment (its ends, their float "

@@ -6,6 +6,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from ..core.errors import require
+from . import SUMMARIES
 
 DEFAULT_MODELS = Path(__file__).resolve().parents[2] / "bags" / "models"
 
@@ -35,7 +36,7 @@ example:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("bench", help="measure PwS against CMS side by side and check the paper's claims",
+    p = subparsers.add_parser("bench", help=SUMMARIES["bench"],
                               description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="reduced settings (<= 10 min on 2 CPU cores), stated in the report")
     p.add_argument("--out", default="bench_out", help="output folder (default bench_out)")

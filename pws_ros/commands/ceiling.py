@@ -8,6 +8,7 @@ from pathlib import Path
 
 from ..core.errors import PwsError, require
 from .common import add_output_args, add_volume_config_args, image_size
+from . import SUMMARIES
 
 DESCRIPTION = """\
 For each frame of a recording (or of several) and each axis: the certificate CEILING, the radius that a classifier
@@ -33,7 +34,7 @@ examples:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("ceiling", help="what a recording allows: the ceiling (a never-changing classifier) next to your model",
+    p = subparsers.add_parser("ceiling", help=SUMMARIES["ceiling"],
                               description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bags", nargs="+", metavar="bag",
                    help="rosbag2 bag directory, or a bare .mcap / .db3 file; several: one table, the medians over all")

@@ -9,10 +9,11 @@ from ..core.model import load_denoiser, load_model
 from ..core.render import resolve_device
 from ..replay.progress_log import Progress
 from .common import add_output_args, add_plan_args, add_scene_args, add_smoothing_args, config_from_args, emit, load_scene
+from . import SUMMARIES
 
 
 def register(sub) -> None:
-    p = sub.add_parser("certify", help="certify a classifier's smoothed prediction against camera motion",
+    p = sub.add_parser("certify", help=SUMMARIES["certify"],
                        description="Plan, render and certify: is the smoothed prediction the same for every camera "
                                    "motion in [-B, B] along AXIS? Prints the label, the certified radius (the largest "
                                    "covered symmetric sub-interval of the grid), the p_A lower bounds and what the "
@@ -38,7 +39,7 @@ def run(args) -> int:
         intr = intr.scaled(w, h)
     denoiser = load_denoiser(args.denoiser, device=device) if args.denoiser else None
     if args.method != "cms":   # the size of the frames the classifier gets: the model's, else the camera's
-        from ..bridge.engine import choose_batch_size
+        from ..bridge.sizing import choose_batch_size
 
         shape = tuple(model.input_size) if model.input_size is not None else intr.shape
         batch_size, _ = choose_batch_size(model, shape, config.batch_size, config.sigma, device=device, denoiser=denoiser,

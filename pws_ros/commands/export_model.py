@@ -11,6 +11,7 @@ from typing import Any
 
 from ..core.errors import PwsError, require
 from .common import add_output_args, image_size
+from . import SUMMARIES
 
 DESCRIPTION = """\
 Turn your own PyTorch image classifier into the file that `pws certify`, `pws replay` and the ROS 2
@@ -47,7 +48,7 @@ def _floats(text: str) -> list[float]:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("export-model", help="turn your own PyTorch classifier into a model file for the certifier",
+    p = subparsers.add_parser("export-model", help=SUMMARIES["export-model"],
                               description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("source", metavar="SOURCE", help="file.py:NAME, package.module:NAME or a TorchScript .pt (see above)")
     p.add_argument("--out", required=True, metavar="MODEL.pt", help="model file to write (and MODEL.classes.txt beside it)")

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from .common import add_output_args, add_volume_config_args, working_volume_params
+from . import SUMMARIES
 
 DESCRIPTION = """\
 Randomized smoothing certifies a classifier that keeps its answer under Gaussian noise of the sigma
@@ -62,7 +63,7 @@ SIGINT / SIGTERM (the work folder keeps the cache and the checkpoint: --resume).
 def register(subparsers) -> None:
     from ..finetune.options import DEFAULT_MODE, MODES, TARGETS
 
-    p = subparsers.add_parser("finetune", help="make a model robust to the smoothing noise on your own recordings (no labels needed)",
+    p = subparsers.add_parser("finetune", help=SUMMARIES["finetune"],
                               description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bags", nargs="+", metavar="RECORDING", help="rosbag2 recordings (bag directories or bare .mcap / .db3 files)")
     p.add_argument("--model", required=True, help="the model file to tune (TorchScript, the contract of `pws export-model`)")

@@ -4,10 +4,11 @@ from __future__ import annotations
 from ..core.imaging import make_imaging, plan_for
 from .common import (add_imaging_size_arg, add_output_args, add_plan_args, add_scene_args, add_working_volume_arg, emit, load_scene,
                      volume_from_args)
+from . import SUMMARIES
 
 
 def register(sub) -> None:
-    p = sub.add_parser("plan", help="compute the camera-motion partitions of a cloud",
+    p = sub.add_parser("plan", help=SUMMARIES["plan"],
                        description="Compute delta_alpha and the grid of camera motions (from -B to +B, containing 0) "
                                    "that PwS, PwS-L or PwS-OF needs for a cloud, camera, axis and radius.")
     add_scene_args(p)

@@ -8,10 +8,11 @@ from ..core.errors import require
 from ..core.imaging import IMAGING_KINDS, make_imaging, render_plan_surfel
 from ..core.partition import Plan
 from .common import add_imaging_size_arg, add_output_args, add_render_factor_arg, add_scene_args, add_drawing_args, emit, load_scene, volume_from_args, background_from_args, add_background_arg
+from . import SUMMARIES
 
 
 def register(sub) -> None:
-    p = sub.add_parser("render", help="render the frames of a plan (z-buffer) and the per-segment bounds",
+    p = sub.add_parser("render", help=SUMMARIES["render"],
                        description="Render a frame for every motion of PLAN.json (from `pws plan --out`) and write an "
                                    ".npz with frames (N,H,W,3) float32 in [0,1], alphas (N,) and pair_bound_sq (N-1,): "
                                    "for every alpha in segment i, |x(alpha)-x_i|^2 + |x(alpha)-x_{i+1}|^2 <= pair_bound_sq[i].")

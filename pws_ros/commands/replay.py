@@ -11,6 +11,7 @@ from typing import Any
 
 from ..core.errors import PwsError, require
 from .common import add_output_args, add_volume_config_args, working_volume_params
+from . import SUMMARIES
 
 DESCRIPTION = """\
 Certify every camera frame of a rosbag2 recording against camera motion, offline, with exactly the
@@ -151,7 +152,7 @@ def progress_interval(args: argparse.Namespace) -> dict[str, float]:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("replay", help="certify a rosbag2 recording offline; write the results as a bag + report",
+    p = subparsers.add_parser("replay", help=SUMMARIES["replay"],
                               description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bag", help="rosbag2 bag directory, or a bare .mcap / .db3 file")
     o = p.add_argument_group("output")

@@ -6,11 +6,12 @@ import json
 from pathlib import Path
 
 from ..core.errors import PwsError, require
+from . import SUMMARIES
 from .common import add_command_group
 
 
 def register(subparsers) -> None:
-    sub = add_command_group(subparsers, "sim", "procedural RGB-D world: record bags, export views",
+    sub = add_command_group(subparsers, "sim", SUMMARIES["sim"],
                             "The seeded procedural world of pws_ros.sim (one object of one of 12 classes in a textured room).",
                             ("record", "view", "classes"))
 

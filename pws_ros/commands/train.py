@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 from ..core.errors import PwsError, require
+from . import SUMMARIES
 from .common import add_command_group
 
 
@@ -18,7 +19,7 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def register(subparsers) -> None:
-    sub = add_command_group(subparsers, "train", "train the demo classifier / denoiser on the procedural world",
+    sub = add_command_group(subparsers, "train", SUMMARIES["train"],
                             "Seeded, CPU-only training on views of pws_ros.sim.", ("all", "classifier", "denoiser"))
 
     a = sub.add_parser("all", help="classifiers for sigma 0.25 and 0.5, the sigma-0.5 denoiser, classes.txt, training_report.json")

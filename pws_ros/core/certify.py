@@ -84,6 +84,9 @@ class CertifyConfig:
     spread_estimation: bool = False
     # surfel: only the points inside are drawn (core.volume; docs/imaging.md section 4a); None: every point
     working_volume: WorkingVolume | None = None
+    # surfel: rounds a side of the frontier refinement once the radii are known (.coverage.frontier_reach);
+    # fewer rounds cost fewer bounds and may leave a smaller radius (a time budget lowers it, bridge.budget)
+    frontier_rounds: int = FRONTIER_ROUNDS
 
     def validate(self) -> "CertifyConfig":
         require(math.isfinite(self.sigma) and self.sigma > 0, f"sigma must be positive, got {self.sigma}")
@@ -100,6 +103,7 @@ class CertifyConfig:
                 "a working volume needs surfel imaging (imaging: paper draws every point)")
         require(math.isfinite(self.step_px) and self.step_px > 0, f"step_px must be positive, got {self.step_px}")
         require(int(self.render_factor) >= 0, f"render_factor must be >= 0 (0: the camera's resolution), got {self.render_factor}")
+        require(int(self.frontier_rounds) >= 0, f"frontier_rounds must be >= 0, got {self.frontier_rounds}")
         require(math.isfinite(self.max_memory_mb) and self.max_memory_mb >= 64,
                 f"max_memory_mb must be at least 64, got {self.max_memory_mb}")
         return self
@@ -397,7 +401,8 @@ class _RendererGeometry:
 
     def frontier(self, anchor_frames: np.ndarray, R: np.ndarray, alphas: np.ndarray, covered: np.ndarray,
                  centre: int) -> tuple[float, list[float]]:
-        return frontier_reach(segment_covers(self._bounds_of, anchor_frames, R), alphas, covered, centre)
+        return frontier_reach(segment_covers(self._bounds_of, anchor_frames, R), alphas, covered, centre,
+                              rounds=int(self.config.frontier_rounds))
 
 
 class _FixedGeometry:

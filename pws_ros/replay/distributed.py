@@ -9,7 +9,10 @@ waits until every earlier frame is written, then goes through the serial replay'
 messages are those of the serial run. What Ray provides and nothing here re-implements:
 
 - scheduling: tasks on a local instance started with ``num_cpus = N`` (each task one CPU; Ray sets one
-  torch/OpenMP thread per worker), or on an existing cluster (``--ray-address``);
+  torch/OpenMP thread per worker), or on an existing cluster (``--ray-address``, the user's to configure);
+  the local instance is this machine's alone: its node address is the loopback one, so its GCS, raylet,
+  agents and worker processes listen on 127.0.0.1 only (:func:`loopback_node`; on a robot a Ray instance
+  listening on every interface would be a cluster endpoint on the robot's network);
 - bounded memory: at most ``2 N`` frames are submitted and not yet written (``ray.wait`` on the oldest);
 - retries: a task whose worker process dies is re-run by Ray (``max_retries``); its result arrives once,
   and the driver writes each frame once, in order;
@@ -22,8 +25,10 @@ worker process audits every k-th frame it certifies.
 from __future__ import annotations
 
 import os
+import sys
 import time
-from typing import Any
+from contextlib import contextmanager
+from typing import Any, Iterator
 
 from ..bridge.inputs import RawFrame, convert
 from ..core.errors import PwsError, require
@@ -44,7 +49,7 @@ def _worker_log(level: str, message: str) -> None:
 
 
 def _certify(config: Any, cloud: Any, intrinsics: Any, stamp_ns: int, dense: Any, frame_id: str, preview_every: int):
-    """One frame in a worker process: (FrameResult, wall seconds, pid)."""
+    """One frame in a worker process: (FrameResult, wall seconds less the engine's start-up work, pid)."""
     from ..bridge.engine import FrameCertifier
 
     engine = _ENGINES.get(config)
@@ -52,7 +57,35 @@ def _certify(config: Any, cloud: Any, intrinsics: Any, stamp_ns: int, dense: Any
         engine = _ENGINES[config] = FrameCertifier(config, log=_worker_log)
     t0 = time.perf_counter()
     result = engine.process(cloud, intrinsics, stamp_ns, dense_cloud=dense, frame_id=frame_id, preview_every=preview_every)
-    return result, time.perf_counter() - t0, os.getpid()
+    return result, time.perf_counter() - t0 - result.timings.get("startup", 0.0), os.getpid()
+
+
+LOCAL_ONLY_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"   # Ray's switch: "0" = a local-only instance on the loopback address
+
+
+@contextmanager
+def loopback_node() -> Iterator[None]:
+    """While a local Ray instance starts: Ray's local-only mode, whose node address is the loopback one
+    (``services.get_node_ip_address``), so that the GCS, the raylet, the agents and the worker processes
+    listen on 127.0.0.1 only (measured with Ray 2.60: without it they listen on every interface and on the
+    machine's network address). Ray reads the switch (``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0``, its default on
+    macOS and Windows) from the environment when it is imported, and the processes it starts inherit it; a
+    driver that imported Ray before gets the same value for the start. Both are restored afterwards."""
+    saved_env = os.environ.get(LOCAL_ONLY_ENV)
+    os.environ[LOCAL_ONLY_ENV] = "0"
+    constants = sys.modules.get("ray._private.ray_constants")
+    saved = getattr(constants, "ENABLE_RAY_CLUSTER", None)
+    if constants is not None:
+        constants.ENABLE_RAY_CLUSTER = False
+    try:
+        yield
+    finally:
+        if saved_env is None:
+            os.environ.pop(LOCAL_ONLY_ENV, None)
+        else:
+            os.environ[LOCAL_ONLY_ENV] = saved_env
+        if constants is not None:
+            constants.ENABLE_RAY_CLUSTER = saved
 
 
 def ray_available() -> str:
@@ -102,7 +135,8 @@ class RayReplay(Replay):
             if self.address:
                 ray.init(address=self.address, log_to_driver=True, logging_level="warning")
             else:
-                ray.init(num_cpus=self.workers, include_dashboard=False, log_to_driver=True, logging_level="warning")
+                with loopback_node():
+                    ray.init(num_cpus=self.workers, include_dashboard=False, log_to_driver=True, logging_level="warning")
             started = True
         try:
             return super().run()
@@ -176,4 +210,4 @@ def replay_ray(options: ReplayOptions, workers: int, address: str | None = None)
     return RayReplay(options, workers, address).run()
 
 
-__all__ = ["IN_FLIGHT_PER_WORKER", "MAX_RETRIES", "RayReplay", "ray_available", "replay_ray"]
+__all__ = ["IN_FLIGHT_PER_WORKER", "LOCAL_ONLY_ENV", "MAX_RETRIES", "RayReplay", "loopback_node", "ray_available", "replay_ray"]

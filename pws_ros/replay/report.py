@@ -54,6 +54,7 @@ class FrameRecord:
     truth_label: int | None = None
     truth_class: str = ""
     correct: dict[str, bool] = field(default_factory=dict)       # axis -> top class is right (with ground truth)
+    startup_ms: float = 0.0   # start-up work the engine did in this frame (warm-ups, batch size check): not in total_ms
 
     def cert(self, axis: str) -> Certificate | None:
         return next((c for c in self.certificates if c.axis == axis), None)
@@ -143,9 +144,24 @@ def summarize(records: Sequence[FrameRecord], *, axes: Sequence[str], units: dic
                 key = " ".join(str(c.reason).split())[:200]
                 errors[key] = errors.get(key, 0) + 1
     out["error_reasons"] = dict(sorted(errors.items(), key=lambda kv: -kv[1]))
+    budgeted = [c.bounds["time_budget"] for r in records for c in r.certificates if "time_budget" in (c.bounds or {})]
+    if budgeted:
+        out["time_budget"] = budget_summary(records, budgeted)
     if extra:
         out.update(extra)
     return jsonable(out, inf="null")
+
+
+def budget_summary(records: Sequence[FrameRecord], budgeted: list[dict[str, Any]]) -> dict[str, Any]:
+    """Under a time budget: the axes sized, reduced, coarsened (budget.Level) and over their share, the
+    frames over the budget, the longest frame and the start-up work left out of the frames."""
+    budget = float(budgeted[0]["frame_budget_s"])
+    over = [t["spent_s"] - t["share_s"] for t in budgeted if t.get("over_budget")]
+    frame_s = [r.total_ms / 1000.0 for r in records if not r.input_error]
+    return {"frame_budget_s": budget, "axes": len(budgeted), "reduced": sum(bool(t["reduced"]) for t in budgeted),
+            "coarsened": sum(bool(t.get("coarsened")) for t in budgeted), "axes_over_share": len(over),
+            "most_over_share_s": max(over) if over else 0.0, "frames_over_budget": sum(1 for f in frame_s if f > budget),
+            "longest_frame_s": max(frame_s) if frame_s else None, "startup_s": sum(r.startup_ms for r in records) / 1000.0}
 
 
 # ---- text table ---------------------------------------------------------------------------
@@ -204,6 +220,12 @@ def format_table(summary: dict[str, Any]) -> str:
         speed = f", {t['recording_span_s'] / t['wall_s']:.2f}x real time"
     lines.append(f"time: {_num(t.get('wall_s'), '.1f')} s wall for {_num(t.get('recording_span_s'), '.1f')} s of recording{speed}; "
                  f"{_num(t.get('per_certificate_ms_mean'), '.0f')} ms per certificate (mean)")
+    b = summary.get("time_budget")
+    if b:
+        lines.append(f"time budget {b['frame_budget_s']:g} s per frame: longest frame {_num(b['longest_frame_s'], '.1f')} s, "
+                     f"{b['frames_over_budget']} frame(s) over; of {b['axes']} axes {b['reduced']} reduced, {b['coarsened']} coarsened, "
+                     f"{b['axes_over_share']} over their share (at most {b['most_over_share_s']:.2f} s); start-up work "
+                     f"{b['startup_s']:.1f} s (not in the frames)")
     if summary.get("error_reasons"):
         top = list(summary["error_reasons"].items())[:3]
         lines.append("errors: " + "; ".join(f"{n}x {reason}" for reason, n in top))

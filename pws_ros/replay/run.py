@@ -201,10 +201,11 @@ class Replay:
         else:
             result = engine.process(frame.cloud, frame.intrinsics, raw.stamp_ns, dense_cloud=dense, frame_id=frame_id,
                                     preview_every=cfg.preview_every if self.opts.preview else 0)
-            duration = time.perf_counter() - t0
+            duration = time.perf_counter() - t0 - result.timings.get("startup", 0.0)   # start-up work is not the frame's
             certs = result.certificates
         compute = result.compute_ms if result is not None else {a: 0.0 for a in cfg.axes}
         rec = FrameRecord(index, raw.stamp_ns, frame_id, raw.source, certs, dict(compute), 1000.0 * duration, 1000.0 * duration)
+        rec.startup_ms = 1000.0 * result.timings.get("startup", 0.0) if result is not None else 0.0
         if start_s is not None:  # realtime: published when the worker finishes
             cost = self.opts.cost_fn(rec) if self.opts.cost_fn is not None else duration
             duration = cost

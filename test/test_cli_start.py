@@ -1,0 +1,57 @@
+"""``pws --help`` starts at once (issue 34): it imports no command module and nothing heavy (torch, numpy,
+scipy), yet lists every command with the one line its own ``--help`` registers; ``pws COMMAND --help``
+builds that command's parser in full."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+HEAVY = ("torch", "numpy", "scipy", "yaml", "rosbags", "ray")
+
+
+def _imported_by(args: list[str]) -> tuple[str, set[str]]:
+    """(stdout, top-level modules imported) of ``python -X importtime -m pws_ros.cli ARGS`` in a fresh interpreter."""
+    out = subprocess.run([sys.executable, "-X", "importtime", "-m", "pws_ros.cli", *args], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+    names = {line.split("|")[-1].strip().split(".")[0] for line in out.stderr.splitlines() if line.startswith("import time:")}
+    full = {line.split("|")[-1].strip() for line in out.stderr.splitlines() if line.startswith("import time:")}
+    return out.stdout, names | full
+
+
+def test_pws_help_imports_nothing_heavy():
+    from pws_ros.commands import SUMMARIES
+
+    stdout, modules = _imported_by(["--help"])
+    assert not modules & set(HEAVY), sorted(modules & set(HEAVY))
+    assert not any(m.startswith("pws_ros.commands.") or m.startswith("pws_ros.core.") and m != "pws_ros.core.errors"
+                   for m in modules), sorted(m for m in modules if m.startswith("pws_ros."))
+    for name in SUMMARIES:
+        assert f"\n    {name}" in stdout
+
+
+def test_the_listed_lines_are_the_commands_own():
+    """The lines `pws --help` lists without importing a command are the help each command registers."""
+    import argparse
+
+    from pws_ros.cli import build_parser
+    from pws_ros.commands import SUMMARIES
+
+    def listed(parser: argparse.ArgumentParser) -> dict[str, str]:
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        return {a.dest: a.help for a in sub._choices_actions}
+
+    assert listed(build_parser()) == listed(build_parser(None)) == SUMMARIES
+
+
+def test_a_command_help_is_built_in_full(capsys):
+    import pytest
+
+    from pws_ros import cli
+
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["plan", "--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: pws plan") and "--radius" in out and "--method" in out
