@@ -100,8 +100,9 @@ def register(subparsers) -> None:
     t.add_argument("--stride", type=int, default=1, help="use every K-th input frame (consecutive frames are near duplicates; default 1)")
     t.add_argument("--max-frames", type=int, default=None, metavar="K", help="at most K frames per recording (after --stride)")
     t.add_argument("--epochs", type=int, default=5, help="passes over the training images (default 5)")
+    t.add_argument("--noise-warmup", type=int, default=0, metavar="E", help="the noise rises linearly from 0 to sigma over E epochs (default 0)")
     t.add_argument("--batch-size", type=int, default=32, help="images per training step and per evaluation call (default 32)")
-    t.add_argument("--lr", type=float, default=None, help="AdamW learning rate, warm-up then cosine decay (default 5e-5 classifier, 1e-4 denoiser)")
+    t.add_argument("--lr", type=float, default=None, help="AdamW learning rate, warm-up then cosine decay (default 5e-5 classifier, 1e-4 denoiser or new head)")
     t.add_argument("--weight-decay", type=float, default=0.0, help="AdamW weight decay (default 0)")
     t.add_argument("--mse-weight", type=float, default=1.0, help="denoiser: weight of the MSE to the clean frame (default 1)")
     t.add_argument("--denoiser-channels", type=int, default=32, help="denoiser: channels (default 32)")
@@ -154,7 +155,7 @@ def options_from_args(args: argparse.Namespace):
         v = getattr(args, attr)
         if v is not None:
             params[name] = v
-    params.update(working_volume_params(args.working_volume))
+    params.update(working_volume_params(args.working_volume, args.window))
     cfg = override_config(cfg, params)
     topics = input_topics(args)
     interval = progress_interval(args)
@@ -163,7 +164,7 @@ def options_from_args(args: argparse.Namespace):
     clips = [c.strip() for c in args.holdout_clips.split(",") if c.strip()] if args.holdout_clips is not None else None
     return FinetuneOptions(
         bags=[Path(b) for b in args.bags], model=Path(args.model) if args.model else None, out=Path(args.out),
-        backbone=args.backbone, new_head=args.new_head, holdout_clips=clips, consistency=args.consistency,
+        backbone=args.backbone, new_head=args.new_head, holdout_clips=clips, consistency=args.consistency, noise_warmup=args.noise_warmup,
         input_size=parse_input_size(args.input_size) if args.input_size else None, config=cfg, sigma=args.sigma,
         mode=args.mode, targets=args.targets, use_truth=not args.no_truth, holdout=args.holdout, views=args.views,
         stride=args.stride, max_frames=args.max_frames, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,

@@ -124,7 +124,7 @@ class FinetuneRun:
                  "topics": dict(sorted(o.topics.items())), "sync": [c.sync_tolerance_s, c.sync_max_skew_s],
                  "input_mode": c.input_mode, "source": self.source, "use_truth": o.use_truth, "fresh_head": o.fresh_head}
         train = {"cache": _key(cache), "sigma": sigma, "mode": o.mode, "targets": o.targets, "use_truth": o.use_truth,
-                 "holdout": o.holdout, "holdout_clips": o.holdout_clips, "consistency": o.consistency, "epochs": o.epochs, "batch_size": o.batch_size, "lr": o.learning_rate,
+                 "holdout": o.holdout, "holdout_clips": o.holdout_clips, "consistency": o.consistency, "noise_warmup": o.noise_warmup, "epochs": o.epochs, "batch_size": o.batch_size, "lr": o.learning_rate,
                  "weight_decay": o.weight_decay, "mse_weight": o.mse_weight if o.mode == "denoiser" else None,
                  "denoiser": [o.denoiser_channels, o.denoiser_depth, str(o.init_denoiser or "")] if o.mode == "denoiser" else None}
         return {"cache": cache, "train": train}, _key(cache), _key(train)
@@ -251,7 +251,7 @@ class FinetuneRun:
         data = TrainSet(caches, train_split, o.use_truth)
         trainer = Trainer(student, data, sigma=sigma, epochs=o.epochs, batch_size=o.batch_size, lr=o.learning_rate,
                           weight_decay=o.weight_decay, targets=o.targets, mse_weight=o.mse_weight, seed=o.seed, device=device,
-                          consistency=o.consistency)
+                          consistency=o.consistency, noise_warmup=o.noise_warmup)
         ckpt_path = work / CHECKPOINT
         elapsed_before = 0.0
         if o.resume:
@@ -411,7 +411,7 @@ class FinetuneRun:
                        "working_volume": None if o.config.working_volume is None else o.config.working_volume.to_dict()},
             "training": {"steps": trainer.total, "epochs": o.epochs, "batch_size": o.batch_size, "lr": o.learning_rate,
                          "targets": "labels" if o.fresh_head else o.targets, "ground_truth_used": o.use_truth,
-                         "consistency": o.consistency, "trainable_parameters": student.num_params(),
+                         "consistency": o.consistency, "noise_warmup_epochs": o.noise_warmup, "trainable_parameters": student.num_params(),
                          "history": trainer.history, "seed": o.seed, "device": str(device)},
             "seconds": {"frames": round(prep_s, 1), "training": round(train_s, 1), "total": round(total_s, 1)},
             "memory": _peak_memory(),

@@ -158,7 +158,7 @@ class Trainer:
 
     def __init__(self, student: Student, data: TrainSet, *, sigma: float, epochs: int, batch_size: int, lr: float,
                  weight_decay: float, targets: str, mse_weight: float, seed: int, device: torch.device,
-                 consistency: float = 0.0):
+                 consistency: float = 0.0, noise_warmup: int = 0):
         self.student = student
         self.data = data
         self.sigma = float(sigma)
@@ -169,6 +169,7 @@ class Trainer:
         self.targets = targets
         self.mse_weight = float(mse_weight)
         self.consistency = float(consistency)
+        self.warm_steps = int(noise_warmup) * self.steps_per_epoch   # sigma rises linearly from 0 over these steps
         self.seed = int(seed)
         self.device = device
         self.opt = torch.optim.AdamW(student.params, lr=self.base_lr, weight_decay=float(weight_decay))
@@ -220,11 +221,12 @@ class Trainer:
         dev = self.device
         x, probs, tops, truth = x.to(dev), probs.to(dev), tops.to(dev), truth.to(dev)
         g = torch.Generator(device=dev).manual_seed(derive(self.seed, _NOISE, s))
-        noise = torch.randn(x.shape, generator=g, device=dev, dtype=x.dtype) * self.sigma
+        sigma = self.sigma * (min(1.0, (s + 1) / self.warm_steps) if self.warm_steps > 0 else 1.0)
+        noise = torch.randn(x.shape, generator=g, device=dev, dtype=x.dtype) * sigma
         noise2 = None
         if self.consistency > 0:
             g2 = torch.Generator(device=dev).manual_seed(derive(self.seed, _NOISE2, s))
-            noise2 = torch.randn(x.shape, generator=g2, device=dev, dtype=x.dtype) * self.sigma
+            noise2 = torch.randn(x.shape, generator=g2, device=dev, dtype=x.dtype) * sigma
         torch.manual_seed(derive(self.seed, _STEP, s))   # dropout and any other draw inside the model
         self.student.train()
         loss, agree = self.loss(x, probs, tops, truth, noise, noise2)
