@@ -26,7 +26,7 @@ from ..cli import main as pws_main
 
 FRACTIONS = (0.0, 0.25, 0.5, 0.75, 1.0)
 CEILING_OPTS = {"--config", "--axes", "--radius", "--sigma", "--n0", "--n", "--alpha", "--anchors", "--render-factor", "--seed",
-                "--batch-size", "--working-volume", "--background", "--device", "--max-frames"}
+                "--batch-size", "--working-volume", "--window", "--background", "--device", "--max-frames"}
 
 
 def _run(argv: list[str]) -> dict:
@@ -71,9 +71,19 @@ def limited_by(row: dict, ceiling: float | None, requested: float) -> str:
 
 
 def report(held: Path, model: Path, sigma: float, out: Path, methods: list[str], extra: list[str],
-           finetune_report: Path | None = None) -> dict[str, Any]:
+           finetune_report: Path | None = None, ceiling_file: Path | None = None) -> dict[str, Any]:
+    """See the module doc; ``ceiling_file``: the ``pws ceiling --json`` of the same frames and imaging
+    (made here, and written to DIR/ceiling.json, when absent: models of one input size share it)."""
     out.mkdir(parents=True, exist_ok=True)
-    ceil = _run(["ceiling", held, "--no-model", "--model", model, "--sigma", sigma, "--json", "--quiet", *_ceiling_args(extra)])
+    from ..core.model import load_model
+
+    if ceiling_file is not None and Path(ceiling_file).is_file():
+        ceil = json.loads(Path(ceiling_file).read_text())
+    else:
+        size = load_model(model).input_size
+        ceil = _run(["ceiling", held, "--no-model", "--size", f"{size[0]}x{size[1]}", "--sigma", sigma, "--json", "--quiet",
+                     *_ceiling_args(extra)])
+        (Path(ceiling_file) if ceiling_file is not None else out / "ceiling.json").write_text(json.dumps(ceil, indent=1) + "\n")
     ceiling = {(r["stamp_ns"], r["axis"]): r for r in ceil["rows"]}
     base = None
     if finetune_report is not None:
@@ -166,9 +176,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True)
     p.add_argument("--methods", default="pws_of,cms")
     p.add_argument("--finetune-report", default=None, help="the model's .finetune.json: its base clean accuracy on the held-out clips")
+    p.add_argument("--ceiling", default=None, metavar="JSON", help="the ceiling of these frames and this imaging (pws ceiling "
+                                                                   "--json): read when it exists, else measured and written there")
     a = p.parse_args(argv)
     result = report(Path(a.held), Path(a.model), a.sigma, Path(a.out), [m for m in a.methods.split(",") if m], extra,
-                    Path(a.finetune_report) if a.finetune_report else None)
+                    Path(a.finetune_report) if a.finetune_report else None, Path(a.ceiling) if a.ceiling else None)
     print("\n".join(table(result)))
     return 0
 

