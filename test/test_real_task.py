@@ -155,3 +155,19 @@ def test_bad_labelled_input_is_one_line_and_writes_no_model(tmp_path, capsys, ca
     if case != "held-out clip matches nothing":
         assert str(tmp_path / "all") in err and "frame" in err
     assert not model.exists()
+
+
+def test_real_task_table_reads_the_curve_and_names_what_limited_each_frame():
+    """bench/real_task: the certified accuracy at 0/25/50/75/100% of the radius is read off the replay's
+    21-point curve, and each certificate's limit follows the rule written out here."""
+    from pws_ros.bench.real_task import at_fractions, limited_by
+
+    req = 0.01
+    curve = [[req * i / 20, 1.0 - i / 40] for i in range(21)]
+    assert at_fractions(curve, req) == [1.0, 1.0 - 5 / 40, 1.0 - 10 / 40, 1.0 - 15 / 40, 0.5]
+    row = {"correct": "1", "status": "not_certified", "radius": "0.004"}
+    assert limited_by({**row, "correct": "0"}, 0.01, req) == "model (wrong class)"
+    assert limited_by({**row, "status": "abstain", "radius": ""}, 0.01, req) == "model (abstained)"
+    assert limited_by({**row, "status": "certified", "radius": "0.01"}, 0.01, req) == "reached"
+    assert limited_by(row, 0.0042, req) == "ceiling"        # 0.004 >= 90% of the ceiling 0.0042
+    assert limited_by(row, 0.01, req) == "model"            # the imaging allowed the whole radius

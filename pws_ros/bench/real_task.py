@@ -47,7 +47,7 @@ def _ceiling_args(extra: list[str]) -> list[str]:
             i += 2
         else:
             i += 1
-    return out
+    return out if "--max-frames" in out else out + ["--max-frames", "1000000"]   # pws ceiling measures 3 frames by default
 
 
 def at_fractions(curve: list[list[float]], requested: float) -> list[float]:
