@@ -71,9 +71,10 @@ def limited_by(row: dict, ceiling: float | None, requested: float) -> str:
 
 
 def report(held: Path, model: Path, sigma: float, out: Path, methods: list[str], extra: list[str],
-           finetune_report: Path | None = None, ceiling_file: Path | None = None) -> dict[str, Any]:
+           finetune_report: Path | None = None, ceiling_file: Path | None = None, reuse: bool = False) -> dict[str, Any]:
     """See the module doc; ``ceiling_file``: the ``pws ceiling --json`` of the same frames and imaging
-    (made here, and written to DIR/ceiling.json, when absent: models of one input size share it)."""
+    (made here, and written to DIR/ceiling.json, when absent: models of one input size share it); ``reuse``:
+    a method whose report folder DIR/METHOD is complete is read, not replayed again."""
     out.mkdir(parents=True, exist_ok=True)
     from ..core.model import load_model
 
@@ -92,8 +93,11 @@ def report(held: Path, model: Path, sigma: float, out: Path, methods: list[str],
                               "base_clean_accuracy": base, "fractions": list(FRACTIONS), "methods": {}}
     for method in methods:
         rdir = out / method
-        summary = _run(["replay", held, "--model", model, "--sigma", sigma, "--method", method, "--no-output", "--report", rdir,
-                        "--json", "--quiet", "--overwrite", *extra])
+        if reuse and (rdir / "summary.json").is_file() and (rdir / "frames.csv").is_file():
+            summary = json.loads((rdir / "summary.json").read_text())
+        else:
+            summary = _run(["replay", held, "--model", model, "--sigma", sigma, "--method", method, "--no-output", "--report", rdir,
+                            "--json", "--quiet", "--overwrite", *extra])
         with open(rdir / "frames.csv", newline="") as fh:
             rows = list(csv.DictReader(fh))
         axes = {}
@@ -178,9 +182,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--finetune-report", default=None, help="the model's .finetune.json: its base clean accuracy on the held-out clips")
     p.add_argument("--ceiling", default=None, metavar="JSON", help="the ceiling of these frames and this imaging (pws ceiling "
                                                                    "--json): read when it exists, else measured and written there")
+    p.add_argument("--reuse", action="store_true", help="read a method's finished report folder instead of replaying it again")
     a = p.parse_args(argv)
     result = report(Path(a.held), Path(a.model), a.sigma, Path(a.out), [m for m in a.methods.split(",") if m], extra,
-                    Path(a.finetune_report) if a.finetune_report else None, Path(a.ceiling) if a.ceiling else None)
+                    Path(a.finetune_report) if a.finetune_report else None, Path(a.ceiling) if a.ceiling else None,
+                    a.reuse)
     print("\n".join(table(result)))
     return 0
 
