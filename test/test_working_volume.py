@@ -361,3 +361,40 @@ def test_live_launches_certify_with_a_working_volume(launch_file, tmp_path, monk
         if player is not None:
             player.close()
         launch.stop()
+
+
+def test_window_draws_the_nearest_band_in_a_camera_window_around_it():
+    """--window: the frame's far face is the 2nd percentile of its in-volume depths + the band, and the
+    crop is the smallest one of the input's aspect (s k camera pixels per input pixel) around those
+    points' pixels (1st-99th percentile, widened 15% a side), kept in the image: checked against
+    numbers worked out here for a 640x480 camera, a near patch (a hand) and a wall behind it."""
+    cam = CameraIntrinsics(640, 480, 615.0, 615.0, 320.0, 240.0)
+    depth = np.full((480, 640), 1.2, np.float32)              # a wall at 1.2 m
+    depth[200:320, 400:560] = 0.7                              # a hand at 0.7 m (6% of the pixels)
+    cloud = cloud_from_rgbd(depth, np.zeros((480, 640, 3), np.uint8), cam)
+    vol = WorkingVolume(0.0, 1.5, window=0.3)
+    framed = vol.for_frame(cloud.points)
+    assert framed.far == pytest.approx(1.0) and framed.window == 0.0       # 0.7 (the 2nd percentile) + 0.3
+    im = make_imaging("surfel", cam, (60, 80), cloud=cloud, volume=vol, render_factor=2, border=0)
+    assert im.volume.far == pytest.approx(1.0)
+    # the hand's pixels (pinhole projection of its points), 1st..99th percentile
+    hand = cloud.points[np.abs(cloud.points[:, 2] - 0.7) < 1e-6].astype(np.float64)
+    u, v = 615.0 * hand[:, 0] / hand[:, 2] + 320.0, 615.0 * hand[:, 1] / hand[:, 2] + 240.0
+    (u0, u1), (v0, v1) = np.percentile(u, [1, 99]), np.percentile(v, [1, 99])
+    s = max(1, math.ceil(max((u1 - u0) * 1.3 / 160, (v1 - v0) * 1.3 / 120)))
+    assert s == 2 and im.decimate == 2 and (s * im.camera.width, s * im.camera.height) == (320, 240)
+    x0 = min(max(0, round((u0 + u1) / 2 - 160)), 640 - 320)
+    y0 = min(max(0, round((v0 + v1) / 2 - 120)), 480 - 240)
+    assert im.crop == (x0, y0)
+    # binned 2x2: pixel edges scale, so centres map c -> (c + 0.5) / 2 - 0.5
+    assert im.camera.cx == pytest.approx((320.0 - x0 + 0.5) / 2 - 0.5) and im.camera.cy == pytest.approx((240.0 - y0 + 0.5) / 2 - 0.5)
+    assert "camera window" in im.describe()
+    # without the window: the centred crop of the whole frame and the whole volume
+    whole = make_imaging("surfel", cam, (60, 80), cloud=cloud, volume=WorkingVolume(0.0, 1.5), render_factor=2, border=0)
+    assert whole.crop == (0, 0) and whole.decimate == 4 and whole.volume.far == 1.5
+    assert WorkingVolume.from_dict(vol.to_dict()) == vol
+    assert volume_from_limits(0.0, 1.5, window=0.3) == vol
+    with pytest.raises(PwsError, match="window"):
+        volume_from_limits(0.0, 0.0, window=0.3)
+    with pytest.raises(PwsError, match="window"):
+        WorkingVolume(0.0, 1.5, window=-1.0)

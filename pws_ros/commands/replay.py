@@ -270,7 +270,7 @@ def build_config(args: argparse.Namespace):
         v = getattr(args, attr, None)
         if v is not None:
             params[name] = str(Path(v).expanduser().resolve()) if attr in ("model", "classes", "denoiser", "dense_cloud") else v
-    params.update(working_volume_params(getattr(args, "working_volume", None)))
+    params.update(working_volume_params(getattr(args, "working_volume", None), getattr(args, "window", None)))
     if getattr(args, "background", None) is not None:
         params["background"] = args.background
     if params.get("method") == "pws" and getattr(args, "imaging", None) is None:

@@ -84,7 +84,9 @@ class Imaging:
         uncovered = (f"uncovered = the alpha = 0 frame (else {self.background:g})" if self.uncovered == "frame"
                      else f"uncovered = {self.background:g}")
         volume = "" if self.volume is None else f"working volume {self.volume.describe()} (outside: {self.background:g}), "
-        return (f"surfel imaging: {src.width}x{src.height} camera, {volume}centred crop {s * self.camera.width}x{s * self.camera.height} "
+        centred = self.crop == ((src.width - s * self.camera.width) // 2, (src.height - s * self.camera.height) // 2)
+        crop = "centred crop" if centred else "camera window"
+        return (f"surfel imaging: {src.width}x{src.height} camera, {volume}{crop} {s * self.camera.width}x{s * self.camera.height} "
                 f"at ({self.crop[0]}, {self.crop[1]}){binned}, {self.factor}x{self.factor} block mean to {w}x{h}, border "
                 f"{self.border[0]} col / {self.border[1]} row masked (= {self.background:g}), {uncovered}")
 
@@ -146,6 +148,8 @@ def make_imaging(kind: str, intr: CameraIntrinsics, model_size: tuple[int, int] 
     k = min(int(render_factor), k_max) if render_factor else k_max
     s = k_max // k                     # camera pixels per rendered pixel (a side)
     x0, y0 = (intr.width - s * k * w) // 2, (intr.height - s * k * h) // 2
+    if volume is not None and volume.window > 0 and cloud is not None:
+        volume, s, x0, y0 = _window(volume, cloud, intr, k, s, w, h)
     cam = replace(intr, width=s * k * w, height=s * k * h, cx=intr.cx - x0, cy=intr.cy - y0)
     if s > 1:
         cam = cam.scaled(k * w, k * h)
@@ -161,6 +165,34 @@ def make_imaging(kind: str, intr: CameraIntrinsics, model_size: tuple[int, int] 
         bx = by = int(border)
     require(2 * bx < w and 2 * by < h, f"border {bx}x{by} px masks the whole {w}x{h} image")
     return replace(im, border=(int(bx), int(by)))
+
+
+WINDOW_MARGIN = 0.15   # the camera window: the box of the nearest points, widened by this share on each side
+
+
+def _window(volume: WorkingVolume, cloud: Cloud, intr: CameraIntrinsics, k: int, s_max: int, w: int, h: int):
+    """The frame's volume (:meth:`WorkingVolume.for_frame`) and the camera window around its measured points
+    (``volume.window`` > 0): the box of their pixels (1st to 99th percentile, widened by WINDOW_MARGIN), the
+    smallest crop of the input's aspect, ``s k`` camera pixels per input pixel (s <= the whole frame's), that
+    holds it, centred on it and kept inside the camera image. Returns (volume, s, x0, y0)."""
+    filled = cloud.filled_mask
+    vol = volume.for_frame(cloud.points, filled)
+    p = np.asarray(cloud.points, dtype=np.float64)
+    inside = vol.contains(p)
+    if filled is not None:
+        inside &= ~np.asarray(filled, dtype=bool)
+    if not inside.any():
+        return vol, s_max, (intr.width - s_max * k * w) // 2, (intr.height - s_max * k * h) // 2
+    q = p[inside]
+    u = intr.fx * q[:, 0] / q[:, 2] + intr.cx
+    v = intr.fy * q[:, 1] / q[:, 2] + intr.cy
+    (u0, u1), (v0, v1) = np.percentile(u, [1, 99]), np.percentile(v, [1, 99])
+    bw, bh = (u1 - u0) * (1 + 2 * WINDOW_MARGIN), (v1 - v0) * (1 + 2 * WINDOW_MARGIN)
+    s = int(min(s_max, max(1, math.ceil(max(bw / (k * w), bh / (k * h))))))
+    cw, ch = s * k * w, s * k * h
+    x0 = int(min(max(0, round((u0 + u1) / 2 - cw / 2)), intr.width - cw))
+    y0 = int(min(max(0, round((v0 + v1) / 2 - ch / 2)), intr.height - ch))
+    return vol, s, x0, y0
 
 
 def auto_border(im: Imaging, cloud: Cloud, radii: dict[str, float]) -> tuple[int, int]:

@@ -17,7 +17,7 @@ take their points from :func:`.surfel.bin_cloud`, which applies the selection fi
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -34,9 +34,13 @@ class WorkingVolume:
     far: float
     x: tuple[float, float] | None = None
     y: tuple[float, float] | None = None
+    window: float = 0.0   # > 0: per frame, only the nearest `window` metres of it, and the camera window around them
 
     def __post_init__(self) -> None:
         what = "working volume"
+        require(isinstance(self.window, (int, float)) and math.isfinite(self.window) and self.window >= 0,
+                f"{what}: window must be a depth band >= 0 m, got {self.window!r}")
+        object.__setattr__(self, "window", float(self.window))
         require(all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (self.near, self.far)),
                 f"{what}: near and far must be numbers, got near={self.near!r}, far={self.far!r}")
         require(math.isfinite(self.near) and math.isfinite(self.far), f"{what}: near and far must be finite, got "
@@ -73,12 +77,30 @@ class WorkingVolume:
         for name, lim in (("x", self.x), ("y", self.y)):
             if lim is not None:
                 text += f", {name} {lim[0]:g} to {lim[1]:g} m"
+        if self.window > 0:
+            text += f", window: the nearest {self.window:g} m of it"
         return text
+
+    def for_frame(self, points: np.ndarray, filled_mask: np.ndarray | None = None) -> "WorkingVolume":
+        """The volume of one frame when ``window`` > 0 (else itself): its far face moved to ``z0 + window``,
+        ``z0`` the 2nd percentile of the depths of the frame's measured points inside the volume (robust to a
+        few stray points): the nearest object and what is just behind it, e.g. a hand and arm before a room.
+        Chosen once at ``alpha = 0`` from the depth, never from a label."""
+        if self.window <= 0:
+            return self
+        p = np.asarray(points, dtype=np.float64)
+        inside = self.contains(p)
+        if filled_mask is not None:
+            inside &= ~np.asarray(filled_mask, dtype=bool)
+        if not inside.any():
+            return replace(self, window=0.0)
+        z0 = float(np.percentile(p[inside, 2], 2.0))
+        return replace(self, far=max(min(self.far, z0 + self.window), self.near + 1e-6), window=0.0)
 
     def to_dict(self) -> dict[str, Any]:
         return {"near": self.near, "far": self.far, "x_min": None if self.x is None else self.x[0],
                 "x_max": None if self.x is None else self.x[1], "y_min": None if self.y is None else self.y[0],
-                "y_max": None if self.y is None else self.y[1]}
+                "y_max": None if self.y is None else self.y[1], "window": self.window}
 
     @classmethod
     def from_dict(cls, d: Any) -> "WorkingVolume | None":
@@ -92,22 +114,23 @@ class WorkingVolume:
                 lo, hi = d.get(f"{name}_min"), d.get(f"{name}_max")
                 require((lo is None) == (hi is None), f"malformed working volume: {name}_min and {name}_max go together, got {d}")
                 lims[name] = None if lo is None else (float(lo), float(hi))
-            return cls(float(d["near"]), float(d["far"]), lims["x"], lims["y"])
+            return cls(float(d["near"]), float(d["far"]), lims["x"], lims["y"], float(d.get("window") or 0.0))
         except (KeyError, TypeError, ValueError) as exc:
             raise PwsError(f"malformed working volume {d!r}: {exc}") from None
 
 
 def volume_from_limits(near: float, far: float, x_min: float = 0.0, x_max: float = 0.0, y_min: float = 0.0,
-                       y_max: float = 0.0) -> WorkingVolume | None:
+                       y_max: float = 0.0, window: float = 0.0) -> WorkingVolume | None:
     """The volume of the parameters ``working_volume.*``: None where ``far`` is 0 (no volume, every point is
     drawn); a lateral limit pair of 0 and 0 means none on that side. PwsError naming a bad combination."""
     lateral = {"x": (x_min, x_max), "y": (y_min, y_max)}
     if far == 0:
         set_ = [f"working_volume.{n}_min/{n}_max" for n, (lo, hi) in lateral.items() if (lo, hi) != (0, 0)]
+        set_ += ["working_volume.window"] * (window != 0)
         require(near == 0 and not set_, f"working volume: {', '.join(['working_volume.near'] * (near != 0) + set_)} set but "
                                          f"working_volume.far is 0 (no working volume): set far, the far face in metres")
         return None
-    return WorkingVolume(near, far, *(None if lim == (0, 0) else lim for lim in (lateral["x"], lateral["y"])))
+    return WorkingVolume(near, far, *(None if lim == (0, 0) else lim for lim in (lateral["x"], lateral["y"])), window=window)
 
 
 VOLUME_BACKGROUND = 0.5   # mid-grey: what "automatic" background is with a working volume (0.0 without one)

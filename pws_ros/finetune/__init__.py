@@ -1,5 +1,7 @@
 """Make an exported classifier robust to Gaussian noise of a chosen sigma on your own recordings,
-without labels (``pws finetune``).
+without labels (``pws finetune``), or train a new head for a labelled recording's classes
+(:mod:`.heads`: ``--backbone`` / ``--new-head``, cross-entropy to the labels, clips held out whole by
+``--holdout-clips``, optional consistency regularisation; docs/real_task.md).
 
 The teacher is the original model on the clean frames; the student learns to give the teacher's
 answer on noisy frames (KL to the teacher's probabilities, or cross-entropy to its top class; a

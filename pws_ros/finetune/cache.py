@@ -11,6 +11,7 @@ one cloud at a time), so an interrupted preparation resumes at the next frame.
 """
 from __future__ import annotations
 
+import fnmatch
 import json
 import math
 import os
@@ -25,7 +26,7 @@ from ..core.errors import PwsError, require
 from ..core.imaging import make_renderer
 from .frames import RecordingFrames
 
-CACHE_FORMAT = "pws_ros-finetune-cache-1"
+CACHE_FORMAT = "pws_ros-finetune-cache-2"
 
 
 def derive(seed: int, *parts: int) -> int:
@@ -68,6 +69,31 @@ class RecordingCache:
                 f"recording {self.bag} gave {n} usable frame(s): too few to hold the last {holdout:.0%} out and train on the "
                 "rest (record longer, lower --stride, or raise --max-frames)")
         return range(0, n - k), range(n - k, n)
+
+
+def split_by_clip(caches: list["RecordingCache"], patterns: list[str]) -> list[tuple[list[int], list[int]]]:
+    """Per recording (train, held out): a frame is held out when its clip (ground truth ``clip``) matches
+    one of ``patterns`` (fnmatch globs; ``clip04`` also matches ``*/clip04``): a clip is either trained on
+    or held out, never both. PwsError when a frame has no clip, a pattern matches nothing, or either side
+    would be empty."""
+    used = {p: 0 for p in patterns}
+    out = []
+    for c in caches:
+        train, held = [], []
+        for k, f in enumerate(c.frames):
+            clip = f.get("clip", "")
+            require(bool(clip), f"recording {c.bag}: frame {f['stamp_ns']} has no clip on its ground truth: --holdout-clips "
+                                "needs recordings made by `pws import frames` (or ground truth with a clip value)")
+            hit = [p for p in patterns if fnmatch.fnmatchcase(clip, p) or fnmatch.fnmatchcase(clip, "*/" + p)]
+            for p in hit:
+                used[p] += 1
+            (held if hit else train).append(k)
+        out.append((train, held))
+    unused = [p for p, n in used.items() if n == 0]
+    require(not unused, f"--holdout-clips {','.join(unused)} matches no clip of the recordings")
+    require(any(t for t, _ in out), "--holdout-clips holds out every frame: nothing is left to train on")
+    require(any(h for _, h in out), "--holdout-clips holds out no frame")
+    return out
 
 
 def _frame_bytes(shape: tuple[int, ...]) -> int:
@@ -126,23 +152,26 @@ class FramePreparer:
         self.progress = progress
         self.config = engine.config
         self.shape: tuple[int, ...] | None = None   # (1 + V, H, W, 3)
-        self.truth_mismatch_warned = False
 
     # -- the label of a frame's ground truth in the model's classes (replay's rule: by name, else by index) --
-    def truth_label(self, truth: Any) -> tuple[int, str]:
-        if truth is None:
+    def truth_label(self, truth: Any, where: str = "") -> tuple[int, str]:
+        """A labelled run (ground truth used) needs every label among the model's classes and, for a new
+        head, every frame labelled: PwsError naming the frame (``where``) and its file otherwise."""
+        o = self.opts
+        if truth is None or not o.use_truth or (not truth.class_name and truth.label is None):
+            require(not o.fresh_head, f"{where}: no label (no /pws/ground_truth class_name near its stamp): a new head trains "
+                                      "on labelled frames only (label every frame, e.g. `pws import labels`)")
             return -1, ""
         names = list(self.teacher.class_names)
-        if truth.class_name:
-            if truth.class_name in names:
-                return names.index(truth.class_name), truth.class_name
-            if not self.truth_mismatch_warned:
-                self.truth_mismatch_warned = True
-                self.warn(f"ground truth class {truth.class_name!r} is not a class of the model: such frames use the teacher's answer")
-            return -1, truth.class_name
+        src = f" ({truth.values['file']})" if truth.values.get("file") else ""
+        if truth.class_name in names:
+            return names.index(truth.class_name), truth.class_name
         if truth.label is not None and 0 <= int(truth.label) < len(names):
-            return int(truth.label), ""
-        return -1, ""
+            return int(truth.label), truth.class_name
+        what = f"label {truth.class_name!r}" if truth.class_name else f"label index {truth.label}"
+        raise PwsError(f"{where}{src}: {what} is not one of the model's {len(names)} classes ({', '.join(names[:12])}"
+                       f"{', ...' if len(names) > 12 else ''}): train a new head for the label set (--new-head or --backbone), "
+                       "or pass --no-truth to ignore the labels")
 
     def motions(self, rec_index: int, frame_index: int) -> list[tuple[str, float]]:
         """The random motions of one frame: an axis of the config and a value uniform in [-radius, radius]."""
@@ -247,6 +276,8 @@ class FramePreparer:
                 "(the model declares no input size and the cameras differ): tune on recordings of one camera size")
 
     def _one(self, rec: RecordingFrames, frame: Any, rec_index: int) -> tuple[np.ndarray, np.ndarray, dict] | None:
+        label, cname = self.truth_label(frame.truth, f"recording {rec.path}: frame {frame.stamp_ns}")   # bad labels first
+        clip = frame.truth.values.get("clip", "") if frame.truth is not None else ""
         converted = rec.convert(frame)
         if converted is None:
             return None
@@ -270,12 +301,11 @@ class FramePreparer:
         x = torch.from_numpy(np.ascontiguousarray(frames[:1].transpose(0, 3, 1, 2)))
         logits = self.teacher(x.to(self.teacher.device)).detach().float().cpu()
         probs = torch.softmax(logits, dim=1)[0].numpy().astype(np.float32)
-        label, cname = self.truth_label(frame.truth)
         u8 = np.clip(np.rint(frames * 255.0), 0, 255).astype(np.uint8)
         meta = {"index": int(frame.index), "stamp_ns": frame.stamp_ns, "teacher": int(np.argmax(probs)),
-                "truth_label": int(label), "truth_class": cname, "motions": [[a, v] for a, v in motions],
+                "truth_label": int(label), "truth_class": cname, "clip": clip, "motions": [[a, v] for a, v in motions],
                 "shape": list(shape)}
         return u8, probs, meta
 
 
-__all__ = ["CACHE_FORMAT", "FramePreparer", "RecordingCache", "atomic_write_text", "derive"]
+__all__ = ["CACHE_FORMAT", "FramePreparer", "RecordingCache", "atomic_write_text", "derive", "split_by_clip"]

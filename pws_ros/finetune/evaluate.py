@@ -95,8 +95,19 @@ def _quantiles(values: np.ndarray) -> dict[str, float]:
     return {f"q{int(round(q * 100)):02d}": float(np.quantile(values, q)) for q in QUANTILES}
 
 
+@torch.no_grad()
+def clean_predictions(model: Callable[[torch.Tensor], torch.Tensor], caches: list[RecordingCache], items: list[tuple[int, int]],
+                      device: torch.device) -> np.ndarray:
+    """(K,) the base classifier's class on each held-out clean alpha = 0 frame (no noise)."""
+    out = np.zeros(len(items), dtype=np.int64)
+    for row, (ci, k) in enumerate(items):
+        x = torch.from_numpy(np.asarray(caches[ci].views[k, 0]).transpose(2, 0, 1).astype(np.float32) / 255.0).to(device)
+        out[row] = int(model(x[None]).argmax(dim=1)[0])
+    return out
+
+
 def summarize(counts: np.ndarray, teacher: np.ndarray, truth: np.ndarray, *, sigma: float, alpha: float = 0.001,
-              stable: np.ndarray | None = None) -> dict[str, Any]:
+              stable: np.ndarray | None = None, clean: np.ndarray | None = None) -> dict[str, Any]:
     """Aggregates of one model on the held-out frames (see the module doc); ``alpha``: the one-sided
     Clopper-Pearson bound of p_A behind the pixel-space Cohen radius sigma * Phi^-1(p_A lower);
     ``stable``: the frames where the teacher's answer is stable (:func:`teacher_stability`)."""
@@ -122,6 +133,8 @@ def summarize(counts: np.ndarray, teacher: np.ndarray, truth: np.ndarray, *, sig
     has = truth >= 0
     if has.any():
         out["accuracy_vs_truth"] = float((top[has] == truth[has]).mean())
+        if clean is not None:
+            out["clean_accuracy_vs_truth"] = float((np.asarray(clean)[has] == truth[has]).mean())
         out["frames_with_truth"] = int(has.sum())
     return out
 
@@ -136,5 +149,5 @@ def per_frame(counts: np.ndarray, teacher: np.ndarray) -> list[dict[str, Any]]:
     return rows
 
 
-__all__ = ["QUANTILES", "STABILITY_SHARE", "STABILITY_SIGMA", "heldout_items", "per_frame", "smoothed_counts",
+__all__ = ["QUANTILES", "STABILITY_SHARE", "STABILITY_SIGMA", "clean_predictions", "heldout_items", "per_frame", "smoothed_counts",
            "stability_summary", "summarize", "teacher_stability"]

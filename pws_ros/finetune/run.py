@@ -22,8 +22,8 @@ from ..core.model import load_model, save_model, sidecar_path
 from ..core.render import resolve_device
 from ..replay.interrupt import Interrupted, StopSignals
 from ..replay.progress_log import Progress
-from .cache import FramePreparer, atomic_write_text
-from .evaluate import heldout_items, per_frame, smoothed_counts, stability_summary, summarize, teacher_stability
+from .cache import FramePreparer, atomic_write_text, split_by_clip
+from .evaluate import clean_predictions, heldout_items, per_frame, smoothed_counts, stability_summary, summarize, teacher_stability
 from .options import FinetuneOptions, FinetuneResult
 from .train import Student, Trainer, TrainSet, atomic_save, load_checkpoint, quiet_jit
 
@@ -101,7 +101,7 @@ class FinetuneRun:
         out = Path(o.out)
         require(out.suffix != "", f"--out {out}: give a model file name such as tuned.pt")
         require(not out.exists() or out.is_file(), f"--out {out} is a folder, not a model file")
-        require(out.resolve() != Path(o.model).resolve(), f"--out {out} is the input model itself")
+        require(o.model is None or out.resolve() != Path(o.model).resolve(), f"--out {out} is the input model itself")
         require(o.overwrite or o.resume or not out.exists(), f"output {out} already exists: choose another --out or pass --overwrite")
         work = o.resolved_work_dir()
         if work.exists():
@@ -122,9 +122,9 @@ class FinetuneRun:
                  "working_volume": None if c.working_volume is None else c.working_volume.to_dict(), "render_size": [c.render_height, c.render_width], "axes": list(c.axes),
                  "radii": c.radii, "views": o.views, "seed": o.seed, "stride": o.stride, "max_frames": o.max_frames,
                  "topics": dict(sorted(o.topics.items())), "sync": [c.sync_tolerance_s, c.sync_max_skew_s],
-                 "input_mode": c.input_mode}
+                 "input_mode": c.input_mode, "source": self.source, "use_truth": o.use_truth, "fresh_head": o.fresh_head}
         train = {"cache": _key(cache), "sigma": sigma, "mode": o.mode, "targets": o.targets, "use_truth": o.use_truth,
-                 "holdout": o.holdout, "epochs": o.epochs, "batch_size": o.batch_size, "lr": o.learning_rate,
+                 "holdout": o.holdout, "holdout_clips": o.holdout_clips, "consistency": o.consistency, "noise_warmup": o.noise_warmup, "epochs": o.epochs, "batch_size": o.batch_size, "lr": o.learning_rate,
                  "weight_decay": o.weight_decay, "mse_weight": o.mse_weight if o.mode == "denoiser" else None,
                  "denoiser": [o.denoiser_channels, o.denoiser_depth, str(o.init_denoiser or "")] if o.mode == "denoiser" else None}
         return {"cache": cache, "train": train}, _key(cache), _key(train)
@@ -146,12 +146,15 @@ class FinetuneRun:
         sigma = o.noise_sigma()
         t_start = time.perf_counter()
         device = resolve_device(o.device)
-        require(Path(o.model).is_file(), f"model file not found: {o.model}")
+        require(o.model is None or Path(o.model).is_file(), f"model file not found: {o.model}")
+        self.source = str(o.backbone) if o.backbone else str(Path(o.model).resolve())
+        self._check_paths()
+        work = o.resolved_work_dir()
+        if o.fresh_head:
+            o = self.opts = replace(o, model=self._new_head(work), classes=None)
         teacher = load_model(o.model, classes=o.classes, device=device)
         require(teacher.num_classes >= 2, f"model {o.model} has {teacher.num_classes} output(s): a classifier needs at least 2 classes")
         self.model_sha = _sha256(Path(o.model))
-        self._check_paths()
-        work = o.resolved_work_dir()
         manifest, cache_key, train_key = self._manifest(teacher, sigma)
         self._check_manifest(work, manifest)
 
@@ -180,6 +183,23 @@ class FinetuneRun:
 
     stopped_at = "while caching the frames"
 
+    def _new_head(self, work: Path) -> Path:
+        """The starting model of a new head (:mod:`.heads`), made once in the work folder (kept for --resume)."""
+        from .heads import build_new_head, class_list
+
+        o = self.opts
+        path = work / "new_head.pt"
+        if o.resume and path.is_file():
+            return path
+        classes = class_list(o.classes, o.bags, o.config, o.topics, lambda m: self.log("warn", m))
+        size = o.input_size
+        if size is None:
+            size = (load_model(o.model).input_size if o.model is not None else None) or (120, 160)
+        build_new_head(path, classes=classes, input_size=tuple(size), seed=o.seed, backbone=o.backbone, model=o.model)
+        self.log("info", f"a new head for {len(classes)} classes ({', '.join(classes)}) on "
+                         f"{o.backbone or o.model}, input {size[1]}x{size[0]}")
+        return path
+
     def _run(self, teacher: Any, engine: Any, device: torch.device, sigma: float, work: Path, train_key: str, stop: Any,
              t_start: float) -> FinetuneResult:
         o = self.opts
@@ -191,40 +211,47 @@ class FinetuneRun:
         caches = [prep.prepare(i, Path(b)) for i, b in enumerate(o.bags)]
         self.close_bar()
         prep_s = time.perf_counter() - t0
-        splits = [c.split(o.holdout) for c in caches]
+        splits = split_by_clip(caches, list(o.holdout_clips)) if o.holdout_clips else [c.split(o.holdout) for c in caches]
         train_split = [s for s, _ in splits]
         held_split = [h for _, h in splits]
         held = heldout_items(caches, held_split)
         n_train = sum(len(s) for s in train_split)
         self.log("info", f"{sum(c.count for c in caches)} frames cached in {prep_s:.0f} s: {n_train} to train on "
-                         f"({n_train * (1 + o.views)} images with the motion views), {len(held)} held out (the last "
-                         f"{o.holdout:.0%} of each recording)")
+                         f"({n_train * (1 + o.views)} images with the motion views), {len(held)} held out ("
+                         + (f"clips {', '.join(o.holdout_clips)}" if o.holdout_clips else f"the last {o.holdout:.0%} of each recording")
+                         + ")")
         teacher_top = np.asarray([caches[ci].frames[k]["teacher"] for ci, k in held], dtype=np.int64)
         truth = np.asarray([caches[ci].frames[k]["truth_label"] for ci, k in held], dtype=np.int64)
 
-        # 2. the teacher under noise (the "before"), kept in the work folder for a resumed run
-        before_path = work / f"before_{train_key}.npy"
-        if before_path.exists():
-            before = np.load(before_path)
+        # 2. the teacher under noise (the "before"), kept in the work folder for a resumed run; a new head has no
+        # teacher: its measure is the label (truth) and there is no "before"
+        if o.fresh_head:
+            teacher_top = truth
+            before = stab = None
         else:
-            self.stopped_at = "while evaluating the original model"
-            before = self._evaluate(teacher, caches, held, sigma, device, teacher.num_classes, "evaluating the original model")
-            with stop.section():
-                np.save(before_path.with_name(before_path.name + ".tmp.npy"), before)
-                os.replace(before_path.with_name(before_path.name + ".tmp.npy"), before_path)
+            before_path = work / f"before_{train_key}.npy"
+            if before_path.exists():
+                before = np.load(before_path)
+            else:
+                self.stopped_at = "while evaluating the original model"
+                before = self._evaluate(teacher, caches, held, sigma, device, teacher.num_classes, "evaluating the original model")
+                with stop.section():
+                    np.save(before_path.with_name(before_path.name + ".tmp.npy"), before)
+                    os.replace(before_path.with_name(before_path.name + ".tmp.npy"), before_path)
 
-        # the ceiling of the agreement: on which held-out frames the teacher's own answer is stable
-        stab = teacher_stability(teacher, caches, held, teacher_top, seed=o.seed, device=device)
-        self.log("info", f"the teacher keeps its clean answer (>= 90% of copies with noise sigma 0.01 and every motion "
-                         f"view) on {int(stab['stable'].sum())} of {len(held)} held-out frames: the agreement any smoothed "
-                         "classifier can be expected to reach there")
+            # the ceiling of the agreement: on which held-out frames the teacher's own answer is stable
+            stab = teacher_stability(teacher, caches, held, teacher_top, seed=o.seed, device=device)
+            self.log("info", f"the teacher keeps its clean answer (>= 90% of copies with noise sigma 0.01 and every motion "
+                             f"view) on {int(stab['stable'].sum())} of {len(held)} held-out frames: the agreement any smoothed "
+                             "classifier can be expected to reach there")
 
         # 3. training
         student = Student(o.mode, Path(o.model), device, channels=o.denoiser_channels, depth=o.denoiser_depth,
                           init_denoiser=o.init_denoiser)
         data = TrainSet(caches, train_split, o.use_truth)
         trainer = Trainer(student, data, sigma=sigma, epochs=o.epochs, batch_size=o.batch_size, lr=o.learning_rate,
-                          weight_decay=o.weight_decay, targets=o.targets, mse_weight=o.mse_weight, seed=o.seed, device=device)
+                          weight_decay=o.weight_decay, targets=o.targets, mse_weight=o.mse_weight, seed=o.seed, device=device,
+                          consistency=o.consistency, noise_warmup=o.noise_warmup)
         ckpt_path = work / CHECKPOINT
         elapsed_before = 0.0
         if o.resume:
@@ -239,7 +266,8 @@ class FinetuneRun:
         self.log("info", f"training the {o.mode} ({student.num_params()} parameters) on {device}: {trainer.total} steps "
                          f"({o.epochs} epochs x {trainer.steps_per_epoch}) of {o.batch_size} noisy images at sigma {sigma:g}, "
                          f"targets: " + (f"ground truth on {truth_frames} frame(s), " if truth_frames else "")
-                         + f"the teacher's {'probabilities' if o.targets == 'soft' else 'top class'}")
+                         + ("" if o.fresh_head else f"the teacher's {'probabilities' if o.targets == 'soft' else 'top class'}")
+                         + (f", consistency weight {o.consistency:g}" if o.consistency > 0 else ""))
         t_train = time.perf_counter()
         bar = self.progress(trainer.total, "training", "steps")
         bar.update(trainer.step)
@@ -284,6 +312,8 @@ class FinetuneRun:
         self.stopped_at = "while evaluating the tuned model (the model file is written)"
         tuned = load_model(model_path, device=device)
         after = self._evaluate(tuned, caches, held, sigma, device, teacher.num_classes, "evaluating the tuned model")
+        self.clean = {"after": clean_predictions(tuned, caches, held, device),
+                      "before": None if o.fresh_head else clean_predictions(teacher, caches, held, device)}
 
         report = self._report(teacher, caches, splits, held, before, after, teacher_top, truth, stab, sigma, trainer, student,
                               device, prep_s, train_s, time.perf_counter() - t_start, model_path, paths[1:])
@@ -308,12 +338,15 @@ class FinetuneRun:
         out.parent.mkdir(parents=True, exist_ok=True)
         info = {k: v for k, v in teacher.meta.items() if k not in ("format", "class_names", "input_height", "input_width", "sigma")}
         info["sigma"] = float(sigma)
-        tuned = {"tool": "pws finetune", "mode": o.mode, "from_model": str(Path(o.model).resolve()), "from_sha256": self.model_sha,
+        tuned = {"tool": "pws finetune", "mode": o.mode, "from_model": self.source, "new_head": o.fresh_head, "from_sha256": self.model_sha,
                  "from_sigma": teacher.meta.get("sigma"), "sigma": float(sigma),
                  "recordings": [{"bag": c.bag, "frames": c.count, "trained_on": len(s), "held_out": len(h),
-                                 "first_held_out_stamp_ns": c.frames[h.start]["stamp_ns"]} for c, (s, h) in zip(caches, splits)],
+                                 "first_held_out_stamp_ns": c.frames[h[0]]["stamp_ns"] if len(h) else None}
+                                for c, (s, h) in zip(caches, splits)],
                  "views_per_frame": o.views, "axes": list(o.config.axes), "radii": o.config.radii, "imaging": o.config.imaging,
-                 "render_factor": o.config.render_factor, "holdout": o.holdout, "stride": o.stride, "targets": o.targets,
+                 "render_factor": o.config.render_factor, "holdout": o.holdout, "holdout_clips": o.holdout_clips,
+                 "working_volume": None if o.config.working_volume is None else o.config.working_volume.to_dict(),
+                 "consistency": o.consistency, "stride": o.stride, "targets": o.targets,
                  "ground_truth_used": o.use_truth, "epochs": o.epochs, "steps": trainer.total, "batch_size": o.batch_size,
                  "lr": o.learning_rate, "seed": o.seed, "report": o.report_path().name}
         info["finetune"] = tuned
@@ -338,34 +371,47 @@ class FinetuneRun:
     def _report(self, teacher, caches, splits, held, before, after, teacher_top, truth, stab, sigma, trainer, student, device,
                 prep_s, train_s, total_s, model_path, extra) -> dict:
         o = self.opts
-        stable = stab["stable"]
-        b = summarize(before, teacher_top, truth, sigma=sigma, stable=stable)
-        a = summarize(after, teacher_top, truth, sigma=sigma, stable=stable)
+        stable = None if stab is None else stab["stable"]
+        clean = self.clean
+        b = None if before is None else summarize(before, teacher_top, truth, sigma=sigma, stable=stable, clean=clean["before"])
+        a = summarize(after, teacher_top, truth, sigma=sigma, stable=stable, clean=clean["after"])
+        pbs = [None] * len(held) if before is None else per_frame(before, teacher_top)
         rows = []
-        for i, ((ci, k), pb, pa) in enumerate(zip(held, per_frame(before, teacher_top), per_frame(after, teacher_top))):
+        for i, ((ci, k), pb, pa) in enumerate(zip(held, pbs, per_frame(after, teacher_top))):
             f = caches[ci].frames[k]
-            rows.append({"recording": caches[ci].bag, "index": f["index"], "stamp_ns": f["stamp_ns"],
-                         "teacher": teacher.class_name(f["teacher"]), "teacher_stable": bool(stable[i]),
-                         "teacher_noise_keep": float(stab["noise"][i]), "teacher_motion_keep": float(stab["motion"][i]),
-                         "truth": (teacher.class_name(f["truth_label"]) if f["truth_label"] >= 0 else None),
-                         "before": {**pb, "top": teacher.class_name(pb["top"])}, "after": {**pa, "top": teacher.class_name(pa["top"])}})
+            row = {"recording": caches[ci].bag, "index": f["index"], "stamp_ns": f["stamp_ns"], "clip": f.get("clip", ""),
+                   "truth": (teacher.class_name(f["truth_label"]) if f["truth_label"] >= 0 else None),
+                   "clean_after": teacher.class_name(int(clean["after"][i])),
+                   "after": {**pa, "top": teacher.class_name(pa["top"])}}
+            if pb is not None:
+                row.update({"teacher": teacher.class_name(f["teacher"]), "teacher_stable": bool(stable[i]),
+                            "teacher_noise_keep": float(stab["noise"][i]), "teacher_motion_keep": float(stab["motion"][i]),
+                            "before": {**pb, "top": teacher.class_name(pb["top"])}})
+            rows.append(row)
+        held_by = f"the clips {', '.join(o.holdout_clips)}" if o.holdout_clips else "the last part of each recording by time"
+        against = "the frame's label" if o.fresh_head else "the original model's clean prediction"
         return {
             "format": REPORT_FORMAT,
-            "model": str(model_path), "extra_files": [str(p) for p in extra], "teacher_model": str(o.model),
+            "model": str(model_path), "extra_files": [str(p) for p in extra], "teacher_model": self.source,
+            "new_head": o.fresh_head, "classes": list(teacher.class_names),
             "mode": o.mode, "sigma": sigma, "eval_samples": o.eval_samples,
-            "measure": ("held-out alpha = 0 frames (the last part of each recording by time, never trained on): the smoothed "
-                        "prediction (majority of eval_samples noisy copies at sigma) against the original model's clean "
-                        "prediction; p_a = the top class's share of the copies, p_teacher = the clean prediction's share; "
+            "measure": (f"held-out alpha = 0 frames ({held_by}, never trained on): the smoothed "
+                        f"prediction (majority of eval_samples noisy copies at sigma) against {against} (agreement); "
+                        "clean_accuracy_vs_truth = the base classifier on the clean frame against the label; "
+                        "p_a = the top class's share of the copies, p_teacher = the target's share; "
                         "l2_radius_median = median over frames of sigma * Phi^-1(p_a lower bound, alpha 0.001) where the "
                         "smoothed prediction agrees (0 elsewhere); the same noise draws before and after"),
-            "before": b, "after": a, "teacher_stability": stability_summary(stab),
+            "before": b, "after": a, "teacher_stability": None if stab is None else stability_summary(stab),
             "recordings": [{"bag": c.bag, "frames": c.count, "trained_on": len(s), "held_out": len(h),
+                            "held_out_clips": sorted({c.frames[k].get("clip", "") for k in h} - {""}),
                             "input_frames_seen": c.info.get("input_frames_seen"),
                             "input_frames_skipped": c.info.get("input_frames_skipped")} for c, (s, h) in zip(caches, splits)],
             "frames": {"views_per_frame": o.views, "axes": list(o.config.axes), "radii": o.config.radii,
-                       "imaging": o.config.imaging, "render_factor": o.config.render_factor, "shape": list(caches[0].views.shape[1:])},
+                       "imaging": o.config.imaging, "render_factor": o.config.render_factor, "shape": list(caches[0].views.shape[1:]),
+                       "working_volume": None if o.config.working_volume is None else o.config.working_volume.to_dict()},
             "training": {"steps": trainer.total, "epochs": o.epochs, "batch_size": o.batch_size, "lr": o.learning_rate,
-                         "targets": o.targets, "ground_truth_used": o.use_truth, "trainable_parameters": student.num_params(),
+                         "targets": "labels" if o.fresh_head else o.targets, "ground_truth_used": o.use_truth,
+                         "consistency": o.consistency, "noise_warmup_epochs": o.noise_warmup, "trainable_parameters": student.num_params(),
                          "history": trainer.history, "seed": o.seed, "device": str(device)},
             "seconds": {"frames": round(prep_s, 1), "training": round(train_s, 1), "total": round(total_s, 1)},
             "memory": _peak_memory(),
@@ -389,37 +435,7 @@ def finetune(options: FinetuneOptions) -> FinetuneResult:
     return FinetuneRun(options).run()
 
 
-def summary_lines(result: FinetuneResult) -> list[str]:
-    """The human summary of a finished run."""
-    r = result.report
-    if result.interrupted or "before" not in r:
-        return [result.message] if result.message else []
-    b, a = r["before"], r["after"]
-
-    def q(d: dict, key: str) -> str:
-        v = d.get(key)
-        return "-" if v is None else f"{v:.3f}"
-
-    lines = [f"model: {result.model_path}" + "".join(f"\n  also: {p}" for p in result.extra_files),
-             f"report: {result.report_path}",
-             f"held-out frames: {b['frames']} at sigma {r['sigma']:g}, {r['eval_samples']} noise samples each",
-             f"{'':28s}{'before':>10s}{'after':>10s}",
-             f"{'agreement with the teacher':28s}{q(b, 'agreement'):>10s}{q(a, 'agreement'):>10s}",
-             f"{'p_A median':28s}{q(b['p_a_quantiles'], 'q50'):>10s}{q(a['p_a_quantiles'], 'q50'):>10s}",
-             f"{'p_A 10% quantile':28s}{q(b['p_a_quantiles'], 'q10'):>10s}{q(a['p_a_quantiles'], 'q10'):>10s}",
-             f"{'p_teacher mean':28s}{q(b, 'p_teacher_mean'):>10s}{q(a, 'p_teacher_mean'):>10s}"]
-    st = r.get("teacher_stability")
-    if st:
-        lines.append(f"{'agreement, stable frames':28s}{q(b, 'agreement_on_stable'):>10s}{q(a, 'agreement_on_stable'):>10s}"
-                     f"   ({st['stable_frames']} of {st['frames']} held-out frames: the teacher keeps its answer under "
-                     f"noise sigma {st['sigma']:g} and the motion views; on the others no smoothed classifier can be expected to agree)")
-    if "accuracy_vs_truth" in a:
-        lines.append(f"{'accuracy (ground truth)':28s}{q(b, 'accuracy_vs_truth'):>10s}{q(a, 'accuracy_vs_truth'):>10s}")
-    s, m = r["seconds"], r["memory"]
-    lines.append(f"time: frames {s['frames']:.0f} s, training {s['training']:.0f} s (all runs of a resumed one), this run "
-                 f"{s['total']:.0f} s; peak memory "
-                 f"{m['peak_rss_mb']:.0f} MB" + (f", GPU {m['peak_cuda_mb']:.0f} MB" if "peak_cuda_mb" in m else ""))
-    return lines
+from .summary import summary_lines  # noqa: E402  (re-exported: pws_ros.finetune.run.summary_lines)
 
 
 __all__ = ["FinetuneRun", "finetune", "summary_lines"]

@@ -23,7 +23,7 @@ from ..core.model import quiet_jit
 from .cache import RecordingCache, derive
 
 CHECKPOINT_FORMAT = "pws_ros-finetune-checkpoint-1"
-_PERM, _NOISE, _STEP = 11, 12, 13   # seed tags
+_PERM, _NOISE, _STEP, _NOISE2 = 11, 12, 13, 14   # seed tags
 
 
 def load_script(path: Path, device: torch.device) -> Any:
@@ -157,7 +157,8 @@ class Trainer:
     """The loop: ``run(start_step)``; ``state()`` / ``load(state)`` for checkpoints."""
 
     def __init__(self, student: Student, data: TrainSet, *, sigma: float, epochs: int, batch_size: int, lr: float,
-                 weight_decay: float, targets: str, mse_weight: float, seed: int, device: torch.device):
+                 weight_decay: float, targets: str, mse_weight: float, seed: int, device: torch.device,
+                 consistency: float = 0.0, noise_warmup: int = 0):
         self.student = student
         self.data = data
         self.sigma = float(sigma)
@@ -167,6 +168,8 @@ class Trainer:
         self.base_lr = float(lr)
         self.targets = targets
         self.mse_weight = float(mse_weight)
+        self.consistency = float(consistency)
+        self.warm_steps = int(noise_warmup) * self.steps_per_epoch   # sigma rises linearly from 0 over these steps
         self.seed = int(seed)
         self.device = device
         self.opt = torch.optim.AdamW(student.params, lr=self.base_lr, weight_decay=float(weight_decay))
@@ -181,11 +184,17 @@ class Trainer:
         return perm[k * self.batch_size:(k + 1) * self.batch_size]
 
     def loss(self, x: torch.Tensor, probs: torch.Tensor, tops: torch.Tensor, truth: torch.Tensor,
-             noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        noisy = x + noise
+             noise: torch.Tensor, noise2: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The target loss on ``x + noise`` (KL / cross-entropy to the teacher, cross-entropy to the label
+        where there is one); with ``noise2`` (consistency regularisation, as the paper trains its
+        classifiers) also on ``x + noise2``, plus ``consistency`` x the mean KL of each copy's
+        prediction to the copies' mean prediction."""
+        copies = 1 if noise2 is None else 2
+        noisy = x + noise if noise2 is None else torch.cat([x + noise, x + noise2])
         den = self.student.denoise(noisy)
         logits = self.student.classifier(den)
         logp = F.log_softmax(logits.float(), dim=1)
+        probs, tops, truth = probs.repeat(copies, 1), tops.repeat(copies), truth.repeat(copies)
         if self.targets == "soft":
             per = F.kl_div(logp, probs, reduction="none").sum(dim=1)
         else:
@@ -194,8 +203,13 @@ class Trainer:
         if bool(has.any()):
             per = torch.where(has, F.nll_loss(logp, truth.clamp_min(0), reduction="none"), per)
         loss = per.mean()
+        if copies == 2 and self.consistency > 0:
+            lp = logp.view(2, len(x), -1)
+            mean = lp.exp().mean(dim=0).clamp_min(1e-12)
+            kl = (mean[None] * (mean.log()[None] - lp)).sum(dim=2).mean()
+            loss = loss + self.consistency * kl
         if self.student.mode == "denoiser" and self.mse_weight > 0:
-            loss = loss + self.mse_weight * F.mse_loss(den, x)
+            loss = loss + self.mse_weight * F.mse_loss(den, x.repeat(copies, 1, 1, 1))
         target = torch.where(has, truth, tops)
         return loss, (logits.argmax(dim=1) == target)
 
@@ -207,17 +221,22 @@ class Trainer:
         dev = self.device
         x, probs, tops, truth = x.to(dev), probs.to(dev), tops.to(dev), truth.to(dev)
         g = torch.Generator(device=dev).manual_seed(derive(self.seed, _NOISE, s))
-        noise = torch.randn(x.shape, generator=g, device=dev, dtype=x.dtype) * self.sigma
+        sigma = self.sigma * (min(1.0, (s + 1) / self.warm_steps) if self.warm_steps > 0 else 1.0)
+        noise = torch.randn(x.shape, generator=g, device=dev, dtype=x.dtype) * sigma
+        noise2 = None
+        if self.consistency > 0:
+            g2 = torch.Generator(device=dev).manual_seed(derive(self.seed, _NOISE2, s))
+            noise2 = torch.randn(x.shape, generator=g2, device=dev, dtype=x.dtype) * sigma
         torch.manual_seed(derive(self.seed, _STEP, s))   # dropout and any other draw inside the model
         self.student.train()
-        loss, agree = self.loss(x, probs, tops, truth, noise)
+        loss, agree = self.loss(x, probs, tops, truth, noise, noise2)
         require(bool(torch.isfinite(loss.detach())), f"training diverged at step {s} (loss {float(loss.detach())}): lower --lr")
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
         value = float(loss.detach())
-        self._acc[0] += value * len(x)
-        self._acc[1] += len(x)
+        self._acc[0] += value * len(agree)
+        self._acc[1] += len(agree)
         self._acc[2] += int(agree.sum())
         self.step = s + 1
         if self.step % self.steps_per_epoch == 0 or self.step == self.total:

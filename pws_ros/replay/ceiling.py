@@ -102,7 +102,7 @@ def ceiling(opts: ReplayOptions, model: LoadedModel | None, *, input_size: tuple
     theirs = _radii(got) if got is not None else {}
     whole = {}
     if opts.config.working_volume is not None:
-        no_volume = opts.config.with_params({f"working_volume.{k}": 0.0 for k in ("near", "far", "x_min", "x_max", "y_min", "y_max")})
+        no_volume = opts.config.with_params({f"working_volume.{k}": 0.0 for k in ("near", "far", "x_min", "x_max", "y_min", "y_max", "window")})
         frame = run(replace(base, config=no_volume, model=never_changing_model(size), denoiser=None))
         require(frame.exit_code == 0 and frame.records, f"the whole frame's ceiling run failed: {frame.message}")
         whole = _radii(frame)
