@@ -24,6 +24,7 @@ from .smoothing import clopper_pearson_lower, cohen_radius
 
 REFINE_FRACTION = 2.0  # grid segments whose end frames differ by more than target / this are subdivided
 REFINE_ROUNDS = 2      # rounds of that subdivision where the anchors of the first fall short (core.certify)
+FIRST_ROUND_SHARE = 0.5  # of the room the grid cap leaves, the first round may take (the rest: the rounds after it)
 TARGET_MARGIN = 0.95   # the target radius is this fraction of the radius the selection samples predict
 SEARCH_WINDOW = 16     # grid frames beyond the first uncovered segment tried as the next anchor
 
@@ -149,6 +150,79 @@ def place_anchors(dist_sq_row: Callable[..., np.ndarray], alphas: np.ndarray, ce
     return _with_rows(anchors, row, rows_out)
 
 
+def budget_ladder(max_anchors: int) -> list[int]:
+    """The budgets below ``max_anchors`` a placement is also tried with (:func:`best_placement`): 1, 2, 3,
+    4, 6, 8, 12, 16, 24, 32, 48, ... (powers of two and three times them), largest first."""
+    out, k = set(), 1
+    while k < max_anchors:
+        out.update(b for b in (k, 3 * k) if b < max_anchors)
+        k *= 2
+    return sorted(out, reverse=True)
+
+
+def best_placement(rule, dist_sq_row: Callable[..., np.ndarray], alphas: np.ndarray, centre: int, max_anchors: int,
+                   target_of: Callable[[int], float], limit: float, first: tuple | None = None) -> tuple:
+    """The anchors, among placements for at most ``max_anchors``, predicted to reach farthest: the budget
+    is an upper bound (issue 34: a larger one must not certify less).
+
+    A placement is predicted to reach the radius its anchors cover if each gets ``target_of(K)``, the
+    Cohen radius the selection samples predict at the level ``alpha / K`` of the ``K`` anchors used; of a
+    placement, the first ``j`` anchors (:func:`best_prefix`) are kept where they reach farther at their
+    own level (an anchor that widens neither side costs every other one some radius). The budget's own
+    placement (``first``, if already made) is tried first, then the smaller budgets of
+    :func:`budget_ladder`, largest first, while the placement before was stopped by the grid (a segment no
+    grid frame nearby covers at its target): a smaller budget places at a larger target, so it may pass
+    that segment (RealSense frame, 224x224, ry: ...). A placement that fit its whole budget ends the
+    search (it was limited by its count; fewer anchors would cover less), as does a reach of ``limit``
+    (the requested radius). Of equal reaches the earlier placement and the longer prefix are kept (the
+    budget's own anchors unless fewer are predicted to reach farther).
+
+    Only the bounds and the selection samples are used: the anchors, hence the Bonferroni ``K``, are fixed
+    before any estimation sample is drawn. ``dist_sq_row(j, i0, i1)`` as in :func:`place_anchors`
+    (partial); its blocks are computed once for all the placements. Returns ``(predicted, anchors, their
+    rows, the budget placed for)``."""
+    cache: dict[tuple, np.ndarray] = {}
+
+    def row(j: int, i0: int = 0, i1: int | None = None) -> np.ndarray:
+        key = (j, i0, i1)
+        if key not in cache:
+            cache[key] = dist_sq_row(j, i0, i1)
+        return cache[key]
+
+    best = None
+    for k in [int(max_anchors)] + budget_ladder(int(max_anchors)):
+        if best is not None and best[0] >= limit:
+            break
+        if k == max_anchors and first is not None:
+            idx, rows = first
+        else:
+            rows = {}
+            idx = rule.place(row, alphas, centre, target_of(k), rows_out=rows, budget=k)
+        predicted, j = best_prefix(rows, idx, alphas, centre, target_of)
+        if best is None or predicted > best[0]:
+            best = (predicted, idx[:j], {int(a): rows[int(a)] for a in idx[:j]}, k)
+        if len(idx) >= k:
+            break   # every anchor of this budget fit: it was limited by its count, so fewer would not do better
+    return best
+
+
+def best_prefix(rows: dict, idx, alphas: np.ndarray, centre: int, target_of: Callable[[int], float]) -> tuple[float, int]:
+    """``(reach, j)``: the first ``j`` anchors of the placement ``idx`` (in the order placed) with the largest
+    covered radius at ``target_of(j)`` (the most of equal reach)."""
+    from .coverage import covered_radius
+
+    D2 = np.stack([rows[int(a)] for a in idx])
+    best = (0.0, 1)
+    for j in range(1, len(idx) + 1):
+        t = float(target_of(j))
+        if t <= 0:
+            continue
+        r = covered_radius(np.any(D2[:j] < t * t, axis=0), alphas, centre)
+        if r >= best[0]:
+            best = (r, j)
+    return best
+
+
 def _with_rows(anchors: list[int], row: Callable[[int], np.ndarray], rows_out: dict[int, np.ndarray] | None) -> list[int]:
     if rows_out is not None:
         for a in anchors:
@@ -160,7 +234,12 @@ def refine_plan(plan: Plan, frames: np.ndarray, max_step: float, max_partitions:
                 reach: float | None = None, keep: tuple[float, float] | None = None) -> Plan:
     """Subdivide every segment whose end frames differ (l2) by more than ``max_step`` into equal parts so
     that consecutive frames differ by about ``max_step`` at most (fine enough to place anchors within a
-    target radius), keeping at most ``max_partitions`` grid points (fewer parts everywhere if needed).
+    target radius), keeping at most ``max_partitions`` grid points. Where that is more than the cap
+    allows, the segments nearest ``alpha = 0`` (rendered path from 0 to their near end, both sides) get
+    their parts first and the farthest get none: the covered run grows outward from 0, so a point far
+    out is worth less than one near 0 (scaling every segment's parts down instead left a grid that a
+    larger anchor budget, reaching farther, refined too little near 0 to place a second anchor: RealSense
+    frame, 224x224, ry, 48 anchors, 2% of the radius where 24 certified 15%).
     With ``reach`` (a path length), only segments within that rendered path length of ``alpha = 0`` on
     their side are refined: the anchor budget cannot cover farther, so finer frames there buy nothing.
     With ``keep = (lo, hi)``, segments inside ``[lo, hi]`` are left as they are (a run the anchors
@@ -168,19 +247,21 @@ def refine_plan(plan: Plan, frames: np.ndarray, max_step: float, max_partitions:
     f = np.asarray(frames, dtype=np.float64)
     d = np.sqrt(((f[1:] - f[:-1]) ** 2).reshape(len(f) - 1, -1).sum(axis=1))
     parts = np.maximum(1, np.ceil(d / max(max_step, 1e-12))).astype(np.int64)
+    centre = int(np.searchsorted(plan.alphas, 0.0))
+    right = np.cumsum(d[centre:])                     # path from alpha = 0 to each segment's far end
+    left = np.cumsum(d[:centre][::-1])[::-1]
+    far = np.concatenate([left, right]) - d            # path to each segment's near end
     if reach is not None:
-        centre = int(np.searchsorted(plan.alphas, 0.0))
-        right = np.cumsum(d[centre:])                 # path from alpha = 0 to each segment's far end
-        left = np.cumsum(d[:centre][::-1])[::-1]
-        far = np.concatenate([left, right]) - d        # path to each segment's near end
         parts = np.where(far <= reach, parts, 1)
     if keep is not None:
         a = plan.alphas
         parts = np.where((a[:-1] >= keep[0]) & (a[1:] <= keep[1]), 1, parts)
-    budget = max(len(d), int(max_partitions) - 1)
-    if parts.sum() > budget:
-        scale = (budget - len(d)) / max(1, int((parts - 1).sum()))
-        parts = 1 + np.floor((parts - 1) * scale).astype(np.int64)
+    room = max(0, int(max_partitions) - 1 - len(d))    # points the cap lets the refinement add
+    if int((parts - 1).sum()) > room:
+        order = np.argsort(far, kind="stable")         # nearest to alpha = 0 first
+        want = (parts - 1)[order]
+        before = np.cumsum(want) - want
+        parts[order] = 1 + np.clip(room - before, 0, want)
     if int(parts.max()) == 1:
         return plan
     a = plan.alphas

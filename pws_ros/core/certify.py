@@ -36,7 +36,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 import torch
 
-from .anchors import REFINE_FRACTION, REFINE_ROUNDS, refine_plan, target_radius
+from .anchors import FIRST_ROUND_SHARE, REFINE_FRACTION, REFINE_ROUNDS, best_placement, refine_plan, target_radius
 from .bounds import SegmentValues
 from .camera import CameraIntrinsics
 from .cloud import Cloud
@@ -385,8 +385,8 @@ class _RendererGeometry:
         return self.renderer.render_batch(plan.alphas).cpu().numpy()
 
     def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
-               keep: tuple[float, float] | None = None) -> tuple[Plan, np.ndarray]:
-        return refine_for_target(self.renderer, plan, frames, target, max_anchors, self.config, keep=keep)
+               keep: tuple[float, float] | None = None, share: float = 1.0) -> tuple[Plan, np.ndarray]:
+        return refine_for_target(self.renderer, plan, frames, target, max_anchors, self.config, keep=keep, share=share)
 
     def bounds(self, plan: Plan):
         # one sweep over the plan's range bounds its grid here, the new segments of a refinement of it (the
@@ -420,7 +420,7 @@ class _FixedGeometry:
         return plan
 
     def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
-               keep: tuple[float, float] | None = None) -> tuple[Plan, np.ndarray]:
+               keep: tuple[float, float] | None = None, share: float = 1.0) -> tuple[Plan, np.ndarray]:
         return plan, frames
 
     def bounds(self, plan: Plan):
@@ -436,14 +436,17 @@ def grid_cap(imaging: Imaging, config: CertifyConfig) -> int:
 
 
 def refine_for_target(renderer: SurfelRenderer, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
-                      config: CertifyConfig, reserve: int = 0, keep: tuple[float, float] | None = None) -> tuple[Plan, np.ndarray]:
+                      config: CertifyConfig, reserve: int = 0, keep: tuple[float, float] | None = None,
+                      share: float = 1.0) -> tuple[Plan, np.ndarray]:
     """The plan refined where consecutive frames differ by more than ``target / REFINE_FRACTION``
     (:func:`.anchors.refine_plan`), and its frames (only the new poses rendered). Anchors cover about 2
     target radii of rendered path each: no refinement farther than the budget reaches; the refined grid
-    stays within :func:`grid_cap` less ``reserve`` points (never below the plan's own size). One round;
-    :func:`_certify_anchored` asks for more where the anchors fall short."""
+    stays within :func:`grid_cap` less ``reserve`` points (never below the plan's own size) and adds at
+    most ``share`` of the room that leaves. One round; :func:`_certify_anchored` asks for more where the
+    anchors fall short."""
     coarse = plan
-    plan = refine_plan(plan, frames, target / REFINE_FRACTION, max(len(frames), grid_cap(renderer.imaging, config) - int(reserve)),
+    room = max(0, grid_cap(renderer.imaging, config) - int(reserve) - len(frames))
+    plan = refine_plan(plan, frames, target / REFINE_FRACTION, len(frames) + int(share * room),
                        reach=(max_anchors + 1) * target, keep=keep)
     if len(plan.alphas) != len(frames):  # render only the new poses
         old = np.searchsorted(plan.alphas, coarse.alphas)
@@ -453,15 +456,6 @@ def refine_for_target(renderer: SurfelRenderer, plan: Plan, frames: np.ndarray, 
         full[new] = renderer.render_batch(plan.alphas[new]).cpu().numpy()
         frames = full
     return plan, frames
-
-
-def _predicted_reach(rule: AdaptiveAnchorsRule, anchor_rows: dict[int, np.ndarray], est_idx: np.ndarray, plan: Plan,
-                     centre: int, radius: float) -> float:
-    """The radius the placed anchors would cover if each got the Cohen radius ``radius`` (a planning value)."""
-    if radius <= 0:
-        return 0.0
-    D2 = np.stack([anchor_rows[int(a)] for a in est_idx])
-    return rule.radius(np.full(len(est_idx), float(radius)), D2, plan.alphas, centre)[0]
 
 
 def refined_hulls(bounds_of, old_grid: np.ndarray, old, grid: np.ndarray):
@@ -562,9 +556,13 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
         n_est = int(config.n) * max_anchors
         max_anchors = 1
         target = target_radius(int(counts0[0, label]), int(config.n0), n_est, config.sigma, config.alpha, 1)
+
+    def target_of(k: int) -> float:   # the target radius of k anchors (selection samples only)
+        return target_radius(int(counts0[0, label]), int(config.n0), n_est, config.sigma, config.alpha, k)
+
     t0 = time.perf_counter()
     if target > 0:
-        plan, frames = geometry.refine(plan, frames, target, max_anchors)
+        plan, frames = geometry.refine(plan, frames, target, max_anchors, share=FIRST_ROUND_SHARE)
     t_render += time.perf_counter() - t0
     t_stats = 0.0
 
@@ -590,10 +588,15 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
         centre = int(np.searchsorted(plan.alphas, 0.0))
         anchor_rows: dict[int, np.ndarray] = {}
         est_idx = rule.place(row, plan.alphas, centre, target, rows_out=anchor_rows)
-        predicted = _predicted_reach(rule, anchor_rows, est_idx, plan, centre,
-                                     target_radius(int(counts0[0, label]), int(config.n0), n_est, config.sigma, config.alpha, len(est_idx)))
-        if best is None or predicted > best[0]:
-            best = (predicted, plan, frames, hulls, centre, est_idx, anchor_rows)
+        predicted = rule.predicted_reach(anchor_rows, est_idx, plan.alphas, centre, target_of(len(est_idx)))
+        chosen = (predicted, est_idx, anchor_rows, max_anchors)
+        if 0 < target and predicted < plan.radius:
+            # the budget is an upper bound: a smaller one (a larger target, a level of fewer anchors) may reach
+            # farther on this grid (:func:`.anchors.best_placement`; bounds and selection samples only)
+            chosen = best_placement(rule, row, plan.alphas, centre, max_anchors, target_of, plan.radius,
+                                    first=(est_idx, anchor_rows))
+        if best is None or chosen[0] > best[0]:
+            best = (chosen[0], plan, frames, hulls, centre, chosen[1], chosen[2], chosen[3])
         t_stats += time.perf_counter() - t1
         if target <= 0 or attempt == 2 or predicted >= plan.radius:
             break
@@ -611,7 +614,7 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
         if len(finer.alphas) == len(plan.alphas):
             break
         plan, frames = finer, finer_frames
-    predicted, plan, frames, hulls, centre, est_idx, anchor_rows = best
+    predicted, plan, frames, hulls, centre, est_idx, anchor_rows, budget = best
     N = plan.num_partitions
     K = len(est_idx)
     spread = bool(config.spread_estimation) and 0 < K and predicted < plan.radius
@@ -648,7 +651,7 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
         # flickering path can be long inside one ball); packing_anchor_bound is one (packing_bound)
         "path_length": float(steps.sum()), "path_anchor_bound": float(steps[half].sum() / (2 * max(float(R.max()), 1e-12))),
         "packing_anchor_bound": packing_bound(frames[(plan.alphas >= -reach) & (plan.alphas <= reach)], float(R.max())),
-        "frontier_splits": len(splits), "spread_estimation": spread,
+        "frontier_splits": len(splits), "spread_estimation": spread, "placement_budget": int(budget),
     }
     if splits:
         # the grid the certificate rests on holds the refinement points (self-audits check their segments)

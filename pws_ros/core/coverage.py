@@ -260,13 +260,22 @@ class AdaptiveAnchorsRule(AnchorsRule):
     adaptive = True
 
     def place(self, dist_sq_row, alphas: np.ndarray, centre: int, target: float,
-              rows_out: dict | None = None) -> np.ndarray:
-        """Grid indices of the anchors (the centre first) for the target Cohen radius ``target``
-        (``rows_out`` receives each anchor's distance row, :func:`.anchors.place_anchors`)."""
+              rows_out: dict | None = None, budget: int | None = None) -> np.ndarray:
+        """Grid indices of at most ``budget`` (default ``num_anchors``) anchors (the centre first) for the
+        target Cohen radius ``target`` (``rows_out`` receives each anchor's distance row,
+        :func:`.anchors.place_anchors`)."""
         from .anchors import place_anchors
 
-        return np.array(place_anchors(dist_sq_row, alphas, centre, target ** 2, self.num_anchors, partial=True,
+        return np.array(place_anchors(dist_sq_row, alphas, centre, target ** 2, int(budget or self.num_anchors), partial=True,
                                       rows_out=rows_out), dtype=np.int64)
+
+    def predicted_reach(self, anchor_rows: dict, est_idx: np.ndarray, alphas: np.ndarray, centre: int, radius: float) -> float:
+        """The radius the anchors ``est_idx`` (their rows in ``anchor_rows``) would cover if each got the
+        Cohen radius ``radius`` (a planning value)."""
+        if radius <= 0 or len(est_idx) == 0:
+            return 0.0
+        D2 = np.stack([anchor_rows[int(a)] for a in est_idx])
+        return self.radius(np.full(len(est_idx), float(radius)), D2, alphas, centre)[0]
 
     def radius(self, R: np.ndarray, anchor_dist_sq: np.ndarray, alphas: np.ndarray, centre: int) -> tuple[float, np.ndarray]:
         """(covered radius, covered segments)."""
