@@ -133,3 +133,30 @@ def camera_motion_rt(axis: str, a: float) -> tuple[list[list[float]], list[float
     else:
         R = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
     return [[R[j][i] for j in range(3)] for i in range(3)], t
+
+
+def recomputed_p_a_lower(cert) -> list[float]:
+    """The p_A bounds of an adaptive-anchors certificate recomputed from what it records (docs/certificate.md,
+    "the estimation in looks"), with scipy's Beta quantile: the joint look's bound of ``joint_votes`` of its
+    first look at ``alpha * share``, and each anchor's own bound of ``anchor_votes`` of ``anchor_samples`` at
+    ``alpha * share / K`` of the look it reached; an anchor's bound is the larger. An independent reference
+    for core.sequential."""
+    from scipy.stats import beta
+
+    def cp(k, n, level):
+        return 0.0 if k == 0 else float(beta.ppf(level, k, n - k + 1))
+
+    b = cert.bounds
+    looks, K = b["looks"], len(b["anchors"])
+    sizes, shares = looks["sizes"], looks["shares"]
+    out = []
+    for n_a, k_a in zip(b["anchor_samples"], b["anchor_votes"]):
+        p = 0.0
+        if looks["joint"] and n_a >= sizes[0]:
+            p = cp(b["joint_votes"], sizes[0], cert.alpha * shares[0])
+        for look, size in enumerate(sizes):
+            if n_a == size and not (looks["joint"] and look == 0):
+                p = max(p, cp(k_a, size, cert.alpha * shares[look] / K))
+        out.append(p)
+    return out
+

@@ -17,7 +17,7 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from conftest import shared_path
+from conftest import recomputed_p_a_lower, shared_path
 from pws_ros.core.anchors import best_placement, budget_ladder, refine_plan, target_radius
 from pws_ros.core.camera import CameraIntrinsics
 from pws_ros.core.certify import CertifyConfig, certify
@@ -25,7 +25,6 @@ from pws_ros.core.cloud import cloud_from_rgbd
 from pws_ros.core.coverage import AdaptiveAnchorsRule, covered_radius
 from pws_ros.core.imaging import make_imaging
 from pws_ros.core.partition import Plan, make_grid
-from pws_ros.core.smoothing import clopper_pearson_lower
 from pws_ros.replay.ceiling import never_changing_model
 
 BUDGETS = (4, 8, 16, 24, 48)
@@ -151,10 +150,12 @@ def _ceilings(cloud, cam, imaging, axis, radius, budgets, **config):
 
 
 def _check_sound(cert):
-    """The Bonferroni level is that of the anchors used (each bound n of n votes at alpha / K)."""
+    """The level is that of the anchors used: every vote for the label (a classifier that never changes its
+    answer), each bound recomputed from the votes the certificate records (conftest.recomputed_p_a_lower)."""
     K = len(cert.bounds["anchors"])
     assert cert.num_bounds == K <= cert.bounds["placement_budget"]
-    assert np.allclose(cert.p_a_lower, float(clopper_pearson_lower(cert.n, cert.n, cert.alpha / K)))
+    assert cert.bounds["anchor_votes"] == cert.bounds["anchor_samples"]
+    assert np.allclose(cert.p_a_lower, recomputed_p_a_lower(cert), rtol=1e-9, atol=1e-12)
 
 
 @settings(max_examples=6, deadline=None)

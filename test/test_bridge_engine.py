@@ -210,8 +210,8 @@ def test_four_process_path_places_the_same_adaptive_anchors(model_path, small_ca
     one = eng.process(cloud, small_camera, S)
     for a, b in zip(four.certificates, one.certificates):
         # preconditions of the equality (the scene and settings are chosen so that they hold)
-        assert b.bounds["target_radius"] == largest_target(eng.certify_config(a.axis, S)) and b.bounds["frontier_splits"] == 0
-        assert len(b.bounds["anchors"]) >= 3 and b.certified
+        assert b.bounds["target_radius"] == largest_target(eng.certify_config(a.axis, S))[0] and b.bounds["frontier_splits"] == 0
+        assert len(b.bounds["anchors"]) >= 2 and b.certified
         assert bundle.plans[a.axis].details["refined_from"] < len(bundle.plans[a.axis].alphas)   # the planner refined
         assert a.status == b.status and a.radius == b.radius and a.p_a_lower == b.p_a_lower, (a.axis, a.reason, b.reason)
         assert a.bounds["anchors"] == b.bounds["anchors"]

@@ -153,13 +153,19 @@ def test_sizes_are_fixed_before_any_sample_is_drawn(make_model_file, small_camer
         return s
 
     real = smoothing.SmoothedClassifier.sample_counts
+    real_votes = smoothing.SmoothedClassifier.common_votes
 
     def counted(self, frames, num, *a, **k):
         events.append(("sample", int(num)))
         return real(self, frames, num, *a, **k)
 
+    def counted_votes(self, frames, num, *a, **k):
+        events.append(("sample", int(num)))
+        return real_votes(self, frames, num, *a, **k)
+
     monkeypatch.setattr(eng.budget, "size", sized)
     monkeypatch.setattr(smoothing.SmoothedClassifier, "sample_counts", counted)
+    monkeypatch.setattr(smoothing.SmoothedClassifier, "common_votes", counted_votes)
     res = eng.process(box_scene(small_camera), small_camera, 7)
     kinds = [e[0] for e in events]
     assert kinds[0] == "sized" and kinds.count("sized") == 2
@@ -171,7 +177,9 @@ def test_sizes_are_fixed_before_any_sample_is_drawn(make_model_file, small_camer
         assert samples[0] == s.n0 and all(k <= s.num_anchors * s.n for k in samples[1:])   # the sized n0, then n
         K = len(cert.bounds["anchors"])
         spread = s.num_anchors * s.n // K if cert.bounds["spread_estimation"] else s.n   # CertifyConfig.spread_estimation
-        assert cert.n in (spread, s.n * s.num_anchors) and cert.bounds["time_budget"]["n"] == s.n
+        looks = cert.bounds["looks"]["sizes"]   # the joint first look of min(n_first, n), then n (core.sequential)
+        assert cert.n in {spread, s.n * s.num_anchors, *looks} and cert.bounds["time_budget"]["n"] == s.n
+        assert looks[-1] in (spread, s.n, s.n * s.num_anchors)
 
 
 class SlowNet(torch.nn.Module):
@@ -277,8 +285,11 @@ def test_a_reduced_budget_spends_its_estimation_samples_on_the_anchors_placed(sm
     eng.budget.costs = costs(batch=1e-3, image=3e-4, point=0.02, fixed=0.1)   # a known (slowish) machine: the sizes shrink
     calls = []
     real = smoothing.SmoothedClassifier.sample_counts
+    real_votes = smoothing.SmoothedClassifier.common_votes
     monkeypatch.setattr(smoothing.SmoothedClassifier, "sample_counts",
                         lambda self, frames, num, *a, **k: calls.append((len(frames), int(num))) or real(self, frames, num, *a, **k))
+    monkeypatch.setattr(smoothing.SmoothedClassifier, "common_votes",
+                        lambda self, frames, num, *a, **k: calls.append((len(frames), int(num))) or real_votes(self, frames, num, *a, **k))
     for cert in eng.process(box_scene(small_camera), small_camera, 7).certificates:
         tb = cert.bounds["time_budget"]
         K = len(cert.bounds["anchors"])
@@ -296,7 +307,7 @@ def test_spreading_is_off_by_default_and_where_the_anchors_reach(small_camera):
 
     model = LoadedModel(MeanThresholdNet(0.5), ["c0", "c1"], (24, 32), "m")
     cloud = box_scene(small_camera)
-    base = CertifyConfig(sigma=0.5, n0=16, n=100, num_anchors=5, batch_size=64, max_partitions=9)
+    base = CertifyConfig(sigma=0.5, n0=16, n=100, num_anchors=5, batch_size=64, max_partitions=9, n_first=0)   # n per anchor
     off = certify(cloud, small_camera, model, "tz", 0.05, config=base)
     on = certify(cloud, small_camera, model, "tz", 0.05, config=dataclasses.replace(base, spread_estimation=True))
     assert off.n == 100 and off.bounds["spread_estimation"] is False

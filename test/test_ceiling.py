@@ -13,7 +13,7 @@ import torch
 
 from pws_ros.bridge.config import PwsConfig
 from pws_ros.core.errors import PwsError
-from pws_ros.core.smoothing import clopper_pearson_lower
+from conftest import recomputed_p_a_lower
 from pws_ros.replay import ReplayOptions
 from pws_ros.replay.ceiling import CeilingRow, advice, ceiling, never_changing_model
 
@@ -39,10 +39,11 @@ def test_ceiling_rows_pair_the_never_changing_classifier_with_the_model():
     rows, top, got = ceiling(opts, model)
     (row,) = rows
     (cert,) = top.records[0].certificates
-    # every anchor of the ceiling run has the largest p_A bound n votes out of n allow at its Bonferroni level
-    K = len(cert.p_a_lower)
-    want = float(clopper_pearson_lower(TINY["n"], TINY["n"], cert.alpha / K))
-    assert np.allclose(cert.p_a_lower, want) and cert.class_name == "always"
+    # every anchor of the ceiling run has the largest p_A bound its votes allow (all for the label: the joint
+    # look's bound, docs/certificate.md), recomputed from what the certificate records
+    assert cert.bounds["anchor_votes"] == cert.bounds["anchor_samples"] and cert.bounds["looks"]["joint"]
+    assert cert.bounds["joint_votes"] == cert.bounds["looks"]["sizes"][0]
+    assert np.allclose(cert.p_a_lower, recomputed_p_a_lower(cert)) and cert.class_name == "always"
     assert row.axis == "tz" and row.requested == 0.002 and row.ceiling == cert.radius > 0
     (mcert,) = got.records[0].certificates
     assert row.model == mcert.radius and row.model_class == mcert.class_name != "always"

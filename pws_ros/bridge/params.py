@@ -151,8 +151,16 @@ PARAMS: tuple[ParamSpec, ...] = (
               "large model is often faster per image in small calls: the certifier times 4 against it once at start and "
               "uses 4 when that is at least 1.25x as fast)",
               range=(1, 1_000_000), nodes=_CERT),
-    ParamSpec("num_anchors", 24, "anchor frames for coverage=anchors (surfel imaging: the most anchors, i.e. a budget of "
-              "n0 + num_anchors * n classifier calls per axis; a frame needing more gets a smaller radius)", range=(1, 100_000), nodes=_ANCHOR),
+    ParamSpec("n_first", 64, "noise samples of the anchors' joint first look (coverage=anchors with surfel imaging; "
+              "docs/certificate.md): where the selection samples are (nearly) unanimous, the anchors share n_first noise "
+              "draws and one bound on the rate at which all of them keep the label bounds each (no division of alpha by "
+              "the anchors), so they are placed for what n_first samples certify, up to num_anchors * n / n_first of them; "
+              "an anchor left short of the radius it was placed for gets the rest of its n samples (its own bound); 90% of "
+              "the risk goes to the first look, the rest to the second. 0: n samples each at alpha / K",
+              range=(0, 100_000_000), nodes=_ANCHOR),
+    ParamSpec("num_anchors", 24, "anchor frames for coverage=anchors (surfel imaging: the estimation budget in anchors of n "
+              "samples, i.e. at most n0 + num_anchors * n classifier calls per axis; with the joint first look up to "
+              "num_anchors * n / n_first anchors are placed; a frame needing more gets a smaller radius)", range=(1, 100_000), nodes=_ANCHOR),
     ParamSpec("time_budget_s", 0.0, "time budget per frame, split evenly over its axes: the certifier measures what a "
               "classifier call and the geometry cost on this machine (a warm-up, then every axis) and sizes n0, num_anchors, n and "
               "max_partitions of each axis (never above the configured ones) before it draws any sample, so that the axis "

@@ -49,6 +49,13 @@ def positive_int(text: str) -> int:
     return v
 
 
+def nonnegative_int(text: str) -> int:
+    v = _parsed(text, int, "an integer")
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return v
+
+
 def add_scene_args(p: argparse.ArgumentParser, radius: bool = True) -> None:
     p.add_argument("--cloud", required=True, metavar="C.npz",
                    help="cloud .npz (points (N,3) metres in the camera optical frame, colors (N,3)); the entire "
@@ -116,14 +123,18 @@ def add_smoothing_args(p: argparse.ArgumentParser) -> None:
                         f"segment; anchors = p_A at K anchors only (default {d.coverage})")
     p.add_argument("--sigma", type=positive_float, default=d.sigma, help=f"pixel noise std (default {d.sigma})")
     p.add_argument("--n0", type=positive_int, default=d.n0, help=f"selection samples (default {d.n0})")
-    p.add_argument("--n", type=positive_int, default=d.n, help=f"estimation samples per partition/anchor (default {d.n})")
+    p.add_argument("--n", type=positive_int, default=d.n, help=f"estimation samples per partition/anchor, the most (default {d.n})")
+    p.add_argument("--n-first", type=nonnegative_int, default=d.n_first, dest="n_first", metavar="M",
+                   help=f"anchors coverage, surfel imaging: samples of the anchors' joint first look (docs/certificate.md; "
+                        f"0: N samples each at alpha / K; default {d.n_first})")
     p.add_argument("--alpha", type=positive_float, default=d.alpha, help=f"risk of the certificate: the probability that its statement is wrong, split by Bonferroni over every bound used (default {d.alpha})")
     p.add_argument("--seed", type=int, default=d.seed, help=f"noise seed (default {d.seed})")
     p.add_argument("--device", default=d.device, help="torch device: cpu or cuda[:N] (default cpu)")
     p.add_argument("--batch-size", type=positive_int, default=d.batch_size, help=f"classifier batch size (default {d.batch_size})")
     p.add_argument("--anchors", type=positive_int, default=d.num_anchors, dest="num_anchors",
-                   help=f"anchors for --coverage anchors; with surfel imaging the most anchors placed from the distance "
-                        f"bounds, a budget of n0 + ANCHORS * n classifier calls (default {d.num_anchors})")
+                   help=f"anchors for --coverage anchors; with surfel imaging the estimation budget in anchors of N samples: "
+                        f"n0 + ANCHORS * N classifier calls at most, up to ANCHORS * N / M anchors placed from the distance "
+                        f"bounds with the joint first look (default {d.num_anchors})")
     p.add_argument("--cms-sigma", type=positive_float, default=None, help="CMS motion-space sigma (default per axis, REFERENCE.md)")
     add_background_arg(p)
     add_drawing_args(p)
@@ -211,7 +222,7 @@ def background_from_args(args) -> float:
 
 def config_from_args(args) -> CertifyConfig:
     return CertifyConfig(working_volume=volume_from_args(args), sigma=args.sigma, n0=args.n0, n=args.n, alpha=args.alpha, seed=args.seed, device=args.device,
-                         batch_size=args.batch_size, coverage=args.coverage, num_anchors=args.num_anchors,
+                         batch_size=args.batch_size, coverage=args.coverage, num_anchors=args.num_anchors, n_first=args.n_first,
                          background=background_from_args(args), uncovered=args.uncovered, max_partitions=args.max_partitions,
                          min_partitions=args.min_partitions, delta=args.delta,
                          cms_sigma=args.cms_sigma, imaging=getattr(args, "imaging", "surfel"),

@@ -188,7 +188,9 @@ def register(subparsers) -> None:
                         "regenerated from the ground truth of a pws sim recording), cms (baseline)")
     c.add_argument("--coverage", default=None, choices=("pairwise", "paper", "anchors"), help="coverage rule (default: config coverage, anchors)")
     c.add_argument("--n0", type=int, default=None, help="noise samples selecting the top class")
-    c.add_argument("--n", type=int, default=None, help="noise samples per bound estimating p_A")
+    c.add_argument("--n", type=int, default=None, help="noise samples per bound estimating p_A, the most")
+    c.add_argument("--n-first", type=int, default=None, metavar="M",
+                   help="samples of the anchors' joint first look (default: config n_first, 64; 0: n samples each at alpha / K)")
     c.add_argument("--sigma", type=float, default=None, help="pixel noise sigma of the smoothed classifier (images in [0, 1])")
     c.add_argument("--alpha", type=float, default=None,
                    help="risk of each frame's certificate, all its axes together (split over the axes, then by Bonferroni "
@@ -209,7 +211,8 @@ def register(subparsers) -> None:
                         "render_factor, 2; 0 = the camera's full resolution, slower)")
     add_volume_config_args(c)
     c.add_argument("--anchors", type=int, default=None,
-                   help="most anchors per axis (budget n0 + anchors * n classifier calls; default: config num_anchors, 24)")
+                   help="estimation budget per axis in anchors of n samples (n0 + anchors * n classifier calls at most; "
+                        "up to anchors * n / n_first anchors with the joint first look; default: config num_anchors, 24)")
     c.add_argument("--time-budget", type=float, default=None, metavar="S",
                    help="seconds per frame, split evenly over its axes: n0, num_anchors, n and max_partitions of each axis are "
                         "sized from the measured cost of a classifier call and of the geometry before any sample is drawn; "
@@ -264,7 +267,7 @@ def build_config(args: argparse.Namespace):
               "denoiser": "denoiser_path", "dense_cloud": "dense_cloud_path", "sync_tolerance": "sync_tolerance_s",
               "sync_max_skew": "sync_max_skew_s",
               "preview_every": "preview_every", "max_partitions": "max_partitions",
-              "min_partitions": "min_partitions", "imaging": "imaging", "border": "border", "render_factor": "render_factor", "anchors": "num_anchors",
+              "min_partitions": "min_partitions", "imaging": "imaging", "border": "border", "render_factor": "render_factor", "anchors": "num_anchors", "n_first": "n_first",
               "audit_every": "audit_every", "time_budget": "time_budget_s"}
     for attr, name in simple.items():
         v = getattr(args, attr, None)

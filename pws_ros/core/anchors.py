@@ -40,6 +40,14 @@ def target_radius(k0: int, n0: int, n: int, sigma: float, alpha: float, max_anch
     return TARGET_MARGIN * float(cohen_radius(p, sigma))
 
 
+def predicted_target(k_hat: int, n: int, sigma: float, level: float, margin: float = 1.0) -> float:
+    """``margin`` times the Cohen radius of ``k_hat`` votes of ``n`` at the level ``level`` (0 when the bound
+    is not above 1/2): the target of a joint first look (:mod:`.sequential`; a planning value). No margin by
+    default: a unanimous look gives exactly this radius, and an anchor a miss leaves short gets its next look."""
+    p = float(clopper_pearson_lower(int(k_hat), int(n), float(level)))
+    return float(margin) * float(cohen_radius(p, sigma)) if p > 0.5 else 0.0
+
+
 ROW_BLOCK = 8          # segments per lazily computed piece of a candidate's distance row
 
 

@@ -36,7 +36,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 import torch
 
-from .anchors import FIRST_ROUND_SHARE, REFINE_FRACTION, REFINE_ROUNDS, best_placement, refine_plan, target_radius
+from .anchors import FIRST_ROUND_SHARE, REFINE_FRACTION, REFINE_ROUNDS, best_placement, predicted_target, refine_plan, target_radius
 from .bounds import SegmentValues
 from .camera import CameraIntrinsics
 from .cloud import Cloud
@@ -47,6 +47,7 @@ from .coverage import (COVERAGES, FRONTIER_PARTS, FRONTIER_ROUNDS, AdaptiveAncho
                        packing_bound, segment_covers)
 from .motion import UNITS, parse_axis
 from .partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, Plan, check_radius, validate_grid
+from .sequential import FIRST_LOOK, Looks, estimate, joint_looks, joint_rate, single
 from .result import STATUS_ABSTAIN, STATUS_CERTIFIED, STATUS_NOT_CERTIFIED, Certificate
 from .smoothing import SmoothedClassifier, bonferroni, clopper_pearson_lower
 from .volume import WorkingVolume, volume_text
@@ -87,6 +88,10 @@ class CertifyConfig:
     # surfel: rounds a side of the frontier refinement once the radii are known (.coverage.frontier_reach);
     # fewer rounds cost fewer bounds and may leave a smaller radius (a time budget lowers it, bridge.budget)
     frontier_rounds: int = FRONTIER_ROUNDS
+    # anchors coverage: samples of an anchor's first look (core.sequential): the anchors are placed for what
+    # n_first samples certify where that covers more per sample than n, up to num_anchors * n // n_first of
+    # them; an anchor whose first look falls short gets the rest of its n. 0 (or >= n): n samples each
+    n_first: int = FIRST_LOOK
 
     def validate(self) -> "CertifyConfig":
         require(math.isfinite(self.sigma) and self.sigma > 0, f"sigma must be positive, got {self.sigma}")
@@ -103,6 +108,7 @@ class CertifyConfig:
                 "a working volume needs surfel imaging (imaging: paper draws every point)")
         require(math.isfinite(self.step_px) and self.step_px > 0, f"step_px must be positive, got {self.step_px}")
         require(int(self.render_factor) >= 0, f"render_factor must be >= 0 (0: the camera's resolution), got {self.render_factor}")
+        require(int(self.n_first) >= 0, f"n_first must be >= 0 (0: one look of n samples), got {self.n_first}")
         require(int(self.frontier_rounds) >= 0, f"frontier_rounds must be >= 0, got {self.frontier_rounds}")
         require(math.isfinite(self.max_memory_mb) and self.max_memory_mb >= 64,
                 f"max_memory_mb must be at least 64, got {self.max_memory_mb}")
@@ -481,10 +487,42 @@ def refined_hulls(bounds_of, old_grid: np.ndarray, old, grid: np.ndarray):
     return HullValues(grid, lo, hi, constant, dict(old.details, segments=S))
 
 
-def largest_target(config: CertifyConfig) -> float:
-    """The target radius of the adaptive anchors when every selection sample votes for one class: the
-    largest any selection can give (:func:`.anchors.target_radius`); it needs no classifier."""
-    return target_radius(int(config.n0), int(config.n0), int(config.n), config.sigma, config.alpha, int(config.num_anchors))
+def placement(k0: int, config: CertifyConfig) -> tuple[Looks, int, Callable[[int], float]]:
+    """``(looks, most anchors, target_of)`` of the adaptive anchors after ``k0`` of the ``n0`` selection votes
+    went to the top class (:mod:`.sequential`), fixed before any estimation sample is drawn:
+
+    * where the selection predicts that the anchors will keep the label together (:func:`.sequential.joint_rate`),
+      a joint first look of ``n_first`` samples, then an individual look of ``n`` for the anchors it leaves
+      short, with up to ``num_anchors * n // n_first`` anchors (the estimation budget ``num_anchors * n``);
+    * else one individual look of ``n`` samples for at most ``num_anchors`` anchors (``n_first`` 0: always).
+
+    The one with the larger target per sample is chosen; ``target_of(K)`` is the Cohen radius the selection
+    predicts for one of ``K`` anchors at the first look (:func:`.anchors.target_radius`; a planning value)."""
+    n0, n, sigma, alpha, budget = int(config.n0), int(config.n), float(config.sigma), float(config.alpha), int(config.num_anchors) * int(config.n)
+
+    def individual(k: int) -> float:
+        return target_radius(int(k0), n0, n, sigma, alpha, int(k))
+
+    if int(config.n_first) <= 0:
+        return single(n), int(config.num_anchors), individual
+    looks = joint_looks(int(config.n_first), n)
+    m = int(looks.sizes[0])
+    most = max(1, budget // m)
+
+    def joint(k: int) -> float:
+        rate = joint_rate(int(k0), n0, int(k))
+        return predicted_target(int(np.floor(m * rate)), m, sigma, looks.level(0, alpha, int(k)))
+
+    if joint(most) / m >= individual(int(config.num_anchors)) / n:
+        return looks, most, joint
+    return single(n), int(config.num_anchors), individual
+
+
+def largest_target(config: CertifyConfig) -> tuple[float, int]:
+    """The target radius of the adaptive anchors when every selection sample votes for one class (the
+    largest any selection can give; it needs no classifier), and the most anchors then (:func:`placement`)."""
+    _, most, target_of = placement(int(config.n0), config)
+    return target_of(most), most
 
 
 def anchor_grid(cloud: Cloud, imaging: Imaging, plan: Plan, config: CertifyConfig) -> Plan:
@@ -503,14 +541,14 @@ def anchor_grid(cloud: Cloud, imaging: Imaging, plan: Plan, config: CertifyConfi
     config = config.validate()
     if imaging.kind != "surfel" or config.coverage != "anchors":
         return plan
-    target = largest_target(config)
+    target, most = largest_target(config)
     if target <= 0:
         return plan
     renderer = make_renderer(cloud, imaging, plan.axis, device=config.device,
                              alpha_range=(float(plan.alphas[0]), float(plan.alphas[-1])))
     frames = renderer.render_batch(plan.alphas).cpu().numpy()
     near_points = 2 * FRONTIER_ROUNDS
-    plan = refine_for_target(renderer, plan, frames, target, int(config.num_anchors), config, reserve=near_points)[0]
+    plan = refine_for_target(renderer, plan, frames, target, most, config, reserve=near_points)[0]
     # the points near 0, coarsest first, as many as the cap leaves room for
     a = plan.alphas
     c = int(np.searchsorted(a, 0.0))
@@ -534,8 +572,8 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     anchor ``a`` with ``D_i(x_a) < R_a``. ``geometry``: :class:`_RendererGeometry` (refines the grid and the
     frontier) or :class:`_FixedGeometry` (frames and bounds received, nothing refined)."""
     sc = SmoothedClassifier(model, config.sigma, batch_size=config.batch_size, seed=config.seed, denoiser=denoiser)
-    max_anchors = int(config.num_anchors)
-    total_work = config.n0 + max_anchors * config.n
+    budget_samples = int(config.num_anchors) * int(config.n)    # the estimation budget of the axis
+    total_work = config.n0 + budget_samples
     t0 = time.perf_counter()
     plan = geometry.start(plan)
     frames = geometry.frames(plan)
@@ -546,19 +584,21 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     label = int(torch.argmax(counts0[0]).item())
     if progress is not None:
         progress(config.n0, total_work)
-    target = target_radius(int(counts0[0, label]), int(config.n0), int(config.n), config.sigma, config.alpha, max_anchors)
-    n_est = int(config.n)
+    k0 = int(counts0[0, label])
+    looks, max_anchors, target_of = placement(k0, config)
+    target = target_of(max_anchors)
     if target <= 0 < max_anchors - 1:
         # too weak for the whole budget's Bonferroni level: the centre alone (level alpha), with the whole
         # estimation budget (num_anchors * n samples), may still certify a small radius, so plan for it
         # (a planning choice made from the selection samples only: the bound uses the anchors placed and
-        # the sample count fixed here, before any estimation sample is drawn)
-        n_est = int(config.n) * max_anchors
-        max_anchors = 1
-        target = target_radius(int(counts0[0, label]), int(config.n0), n_est, config.sigma, config.alpha, 1)
+        # the sample count fixed here, before any estimation sample is drawn); its samples come n at a time
+        # and the axis stops as soon as they make a bound above 1/2 all but impossible (.sequential.futile)
+        looks, max_anchors = single(budget_samples), 1
 
-    def target_of(k: int) -> float:   # the target radius of k anchors (selection samples only)
-        return target_radius(int(counts0[0, label]), int(config.n0), n_est, config.sigma, config.alpha, k)
+        def target_of(k: int) -> float:
+            return target_radius(k0, int(config.n0), budget_samples, config.sigma, config.alpha, k)
+
+        target = target_of(1)
 
     t0 = time.perf_counter()
     if target > 0:
@@ -618,20 +658,35 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     N = plan.num_partitions
     K = len(est_idx)
     spread = bool(config.spread_estimation) and 0 < K and predicted < plan.radius
-    if spread:
+    if spread and budget_samples // K > looks.last:
         # a planning choice from the bounds and the selection samples only, made before any estimation draw:
-        # the samples the axis was sized for go to the anchors there are (a larger n, the same Bonferroni K)
-        n_est = max(n_est, int(config.num_anchors) * int(config.n) // K)
-    # the K anchors share their n noise draws (common random numbers: each bound holds, Bonferroni needs no
-    # independence between them; SmoothedClassifier.sample_counts)
-    counts = sc.sample_counts(torch.as_tensor(frames[est_idx]), n_est, common_noise=True)
-    k_est = counts[:, label].numpy()
+        # the samples the axis was sized for go to the anchors there are (one look of num_anchors * n // K
+        # samples each, joint where the plan's first look was, the same K)
+        looks = Looks((budget_samples // K,), (1.0,), looks.joint)
+    D2 = np.stack([anchor_rows[int(a)] for a in est_idx])
+    planned = target_of(K)
+
+    def votes_of(idx: np.ndarray, m: int) -> np.ndarray:
+        # the anchors of a call share their noise draws (common random numbers: each bound holds, Bonferroni
+        # needs no independence between them, and the joint look needs them: SmoothedClassifier.common_votes)
+        return sc.common_votes(torch.as_tensor(frames[est_idx[idx]]), int(m), label).numpy()
+
+    def go_on(p: np.ndarray) -> np.ndarray:
+        # an anchor whose bound falls short of the radius it was placed for, while the anchors do not yet cover
+        # what the placement predicted (or the request): a decision from the samples seen so far (.sequential)
+        R_now = cohen_radii(p, config.sigma)
+        if rule.radius(R_now, D2, plan.alphas, centre)[0] >= min(float(predicted), float(plan.radius)):
+            return np.zeros(K, bool)
+        return R_now < planned
+
+    # the estimation (.sequential.estimate): a joint first look or the centre first, then looks for the anchors
+    # left short, the risk split over every look
+    est = estimate(votes_of, K, looks, config.alpha, go_on, budget=max(budget_samples, K * looks.sizes[0]), chunk=int(config.n))
+    p_lower, used = est.p_lower, est.samples
     if progress is not None:
         progress(total_work, total_work)
     t1 = time.perf_counter()
-    p_lower = np.asarray(clopper_pearson_lower(k_est, n_est, bonferroni(config.alpha, K)), dtype=np.float64).reshape(-1)
     R = cohen_radii(p_lower, config.sigma)
-    D2 = np.stack([anchor_rows[int(a)] for a in est_idx])
     reach, covered = rule.radius(R, D2, plan.alphas, centre)   # the placed anchors: a fixed set (module doc of .anchors)
     t_stats += time.perf_counter() - t1
     splits: list[float] = []
@@ -652,6 +707,9 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
         "path_length": float(steps.sum()), "path_anchor_bound": float(steps[half].sum() / (2 * max(float(R.max()), 1e-12))),
         "packing_anchor_bound": packing_bound(frames[(plan.alphas >= -reach) & (plan.alphas <= reach)], float(R.max())),
         "frontier_splits": len(splits), "spread_estimation": spread, "placement_budget": int(budget),
+        # what each bound rests on: its votes for the label of its samples, at the level of the look it stopped
+        # at (alpha * share / K; the largest of its looks' bounds): core.sequential
+        "looks": looks.to_dict(), **est.to_dict(),
     }
     if splits:
         # the grid the certificate rests on holds the refinement points (self-audits check their segments)
@@ -663,4 +721,4 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     timings = dict(timings)
     timings.update(render=t_render, inference=sc.inference_seconds, statistics=t_stats)
     return _conclude(plan, centre, reach, {centre: 0}, p_lower, R, label, model, config,
-                     method, sc, bounds, timings, t_start, frames_rendered=N, n_est=n_est)
+                     method, sc, bounds, timings, t_start, frames_rendered=N, n_est=int(used.max()) if K else 0)

@@ -309,6 +309,35 @@ class SmoothedClassifier:
         assert counts is not None
         return counts.cpu()
 
+    def common_votes(self, frames: Any, num: int, label: int) -> torch.Tensor:
+        """``(B, num)`` bool (CPU): whether each of ``num`` noisy samples of each frame is classified ``label``,
+        the frames sharing their noise draws (sample ``j`` of every frame adds the same noise image), drawn as
+        :meth:`sample_counts` with ``common_noise`` draws them. Column ``j`` thus tells whether every frame
+        kept the label under one noise draw: the joint vote of :mod:`.sequential`."""
+        require(isinstance(num, (int, np.integer)) and not isinstance(num, bool) and int(num) >= 1,
+                f"the number of noise samples must be an integer >= 1, got {num!r}")
+        num = int(num)
+        frames = _frames_tensor(frames)
+        self._check_size(frames)
+        B, H, W, _ = frames.shape
+        chw = frames.permute(0, 3, 1, 2)
+        votes = torch.zeros((B, num), dtype=torch.bool)
+        t0 = time.perf_counter()
+        try:
+            buffer = self._noise_buffer(min(num, self.batch_size), H, W)
+            out = torch.empty_like(buffer)
+            for start in range(0, num, self.batch_size):
+                b = min(self.batch_size, num - start)
+                noise = self._draw(buffer[:b]).mul_(self.sigma)
+                x = out[:b]
+                for k in range(B):
+                    torch.add(noise, chw[k].to(self.device), out=x)
+                    votes[k, start:start + b] = (self._classify(x, use_denoiser=True) == int(label)).cpu()
+            _sync(self.device)
+        finally:
+            self.inference_seconds += time.perf_counter() - t0
+        return votes
+
     def predict(self, frames: Any, *, use_denoiser: bool = False) -> torch.Tensor:
         """Clean argmax (no noise) of the base classifier per frame: ``(B,)`` int64 (CPU).
         The denoiser is skipped unless ``use_denoiser``."""
