@@ -39,12 +39,16 @@ from .errors import require
 from .framing import SAMPLE_JITTER, SURFEL_OVERLAP, Imaging, reduce_frames
 from .motion import depth, parse_axis, project, split_events
 from .render import DEFAULT_MAX_ELEMENTS, resolve_device
+from .surfel_cover import UnionPolicy, first_covers, range_implied, union_of
 
 _CORNER_SIGNS = ((-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0))
 # covered_pairs: the most pixel-surfel pairs one call may hold (a frame of a real camera holds a few
 # million per batch; a cloud of points at the camera plane would ask for billions: refused, never allocated)
 PAIR_BYTES = 17                      # two int64 indices and a flag per pair kept
 MAX_COVERED_PAIRS = 32 * 2**20       # about 0.5 GiB of pairs
+# poses rendered from one union of footprints (surfel_cover.first_covers): neighbouring poses share most
+# winners, poses far apart few
+UNION_POSES = 5
 PAIR_CHUNK = 2**21                   # box pixels beyond the 2x2 corner enumerated at a time (bounded temporaries)
 
 
@@ -61,6 +65,7 @@ class SurfelRenderer:
         require(imaging.kind == "surfel", "SurfelRenderer needs surfel imaging")
         self.axis = parse_axis(axis)
         self.imaging = imaging
+        self.alpha_range, self._sweep, self._policy = None, None, UnionPolicy()
         self.intr = imaging.camera
         self.background = float(imaging.background)
         self.device = resolve_device(device)
@@ -77,9 +82,12 @@ class SurfelRenderer:
             self.uncovered = self.colors[self.num_points].expand(HW, 3).clone()
         if alpha_range is not None:
             # drop the surfels no pose of the range can show (in order: the tie rule is unchanged)
-            keep = FootprintSweep(self, *alpha_range).maybe_visible(*alpha_range)
+            self._sweep = FootprintSweep(self, *alpha_range)
+            keep = self._sweep.maybe_visible(*alpha_range)
             if not keep.all():
                 self._set_points(self.points_np[keep], self.colors_np[keep])
+                self._sweep = None          # made again, for the points kept, when several poses are rendered
+            self.alpha_range = (float(alpha_range[0]), float(alpha_range[1]))
 
     def _set_points(self, pts: np.ndarray, colors: np.ndarray) -> None:
         self.num_points = len(pts)
@@ -101,10 +109,12 @@ class SurfelRenderer:
     def chunk_size(self) -> int:
         return max(1, self.max_elements // max(1, 4 * self.num_points))
 
-    def footprints(self, alphas: torch.Tensor):
-        """Footprint boxes ``umin, umax, vmin, vmax``, centre depth and drawn mask, each (B, P)."""
-        u, v, d = project(self.corners[None], self.intr, self.axis, alphas[:, None, None], xp=torch)  # (B, 4, P)
-        zc = depth(self.points[None], self.axis, alphas[:, None], xp=torch)                          # (B, P)
+    def footprints(self, alphas: torch.Tensor, subset: torch.Tensor | None = None):
+        """Footprint boxes ``umin, umax, vmin, vmax``, centre depth and drawn mask, each (B, P) (``subset``:
+        of those surfels only, (B, U), bit for bit the same values)."""
+        corners, points = (self.corners, self.points) if subset is None else (self.corners[:, subset], self.points[subset])
+        u, v, d = project(corners[None], self.intr, self.axis, alphas[:, None, None], xp=torch)  # (B, 4, P)
+        zc = depth(points[None], self.axis, alphas[:, None], xp=torch)                          # (B, P)
         drawn = (d > 0).all(dim=1) & (zc > 0)
         return u.amin(1), u.amax(1), v.amin(1), v.amax(1), zc, drawn
 
@@ -115,11 +125,36 @@ class SurfelRenderer:
         idx = torch.full((B * H * W,), n, dtype=torch.long, device=self.device)
         if n == 0:
             return idx.view(B, H, W)
-        umin, umax, vmin, vmax, zc, drawn = self.footprints(alphas)
-        p_i, where, _ = covered_pairs(umin, umax, vmin, vmax, drawn, self.samples, 0.0)
         # the covering surfel first in occlusion order (the least rank, see _set_points)
-        idx.scatter_reduce_(0, where, self.rank[p_i], reduce="amin", include_self=True)
-        return self.by_rank[idx].view(B, H, W)
+        sweep = self._sweep_for(alphas)
+        if sweep is None:
+            umin, umax, vmin, vmax, zc, drawn = self.footprints(alphas)
+            p_i, where, _ = covered_pairs(umin, umax, vmin, vmax, drawn, self.samples, 0.0)
+            idx.scatter_reduce_(0, where, self.rank[p_i], reduce="amin", include_self=True)
+            return self.by_rank[idx].view(B, H, W)
+
+        def boxes_at(alphas, subset):   # the footprints at every pose, inner box = outer box
+            umin, umax, vmin, vmax, zc, drawn = self.footprints(alphas, subset)
+            return (umin, umax, vmin, vmax), drawn, (umin, umax, vmin, vmax), drawn
+
+        out = []
+        for s in range(0, B, UNION_POSES):
+            a = alphas[s:s + UNION_POSES]
+            union = sweep.union(float(a.min()), float(a.max()))
+            out.append(first_covers(union, lambda sub: boxes_at(a, sub), len(a), 0.0, 0.0, self.rank, self.samples,
+                                    policy=self._policy))
+        return self.by_rank[torch.cat(out)].view(B, H, W)
+
+    def _sweep_for(self, alphas: torch.Tensor):
+        """The footprint sweep over the renderer's motion range when it holds ``alphas`` and several poses are
+        rendered at once (:func:`.surfel_cover.first_covers`), else None (each pose on its own)."""
+        if len(alphas) < 2 or self.alpha_range is None or not range_implied(self.samples):
+            return None
+        if not (self.alpha_range[0] <= float(alphas.min()) and float(alphas.max()) <= self.alpha_range[1]):
+            return None
+        if self._sweep is None:
+            self._sweep = FootprintSweep(self, *self.alpha_range)
+        return self._sweep
 
     def _shade(self, winners: torch.Tensor) -> torch.Tensor:
         """The colours (B, Hn, Wn, 3) of winner indices (``num_points``: the pixel's uncovered value)."""
@@ -351,37 +386,55 @@ class FootprintSweep:
         return (torch.as_tensor(i[ok], device=device), torch.as_tensor(t[ok], device=device),
                 torch.as_tensor(seg[ok], device=device))
 
-    def ranges(self, g):
+    def ranges(self, g, subset: torch.Tensor | None = None):
         """Per segment ``[g[k], g[k+1]]`` and surfel: the range of every corner's ``u`` and ``v`` (B, 4, P), the
-        least corner depth (B, 4, P), the centre depth range (B, P) each."""
+        least corner depth (B, 4, P), the centre depth range (B, P) each. ``subset`` (sorted surfel indices):
+        those surfels only (U in place of P), bit for bit the same values."""
         r, P = self.r, self.P
         g = np.asarray(g, dtype=np.float64)
         B = len(g) - 1
         t = torch.as_tensor(g, dtype=torch.float64, device=r.device)
-        u, v, d = project(r.corners[None], r.intr, r.axis, t[:, None, None], xp=torch)   # (B+1, 4, P)
-        zc = depth(r.points[None], r.axis, t[:, None], xp=torch)                          # (B+1, P)
-        u_lo, u_hi = torch.minimum(u[:-1], u[1:]).reshape(-1), torch.maximum(u[:-1], u[1:]).reshape(-1)   # (B 4 P)
+        corners, points = (r.corners, r.points) if subset is None else (r.corners[:, subset], r.points[subset])
+        U = corners.shape[1]
+        u, v, d = project(corners[None], r.intr, r.axis, t[:, None, None], xp=torch)     # (B+1, 4, U)
+        zc = depth(points[None], r.axis, t[:, None], xp=torch)                           # (B+1, U)
+        u_lo, u_hi = torch.minimum(u[:-1], u[1:]).reshape(-1), torch.maximum(u[:-1], u[1:]).reshape(-1)   # (B 4 U)
         v_lo, v_hi = torch.minimum(v[:-1], v[1:]).reshape(-1), torch.maximum(v[:-1], v[1:]).reshape(-1)
         d_lo = torch.minimum(d[:-1], d[1:]).reshape(-1)
         z_lo, z_hi = torch.minimum(zc[:-1], zc[1:]).reshape(-1), torch.maximum(zc[:-1], zc[1:]).reshape(-1)
+        local = None
+        if subset is not None:   # surfel index -> its place in the subset (-1: not in it)
+            local = torch.full((P,), -1, dtype=torch.long, device=r.device)
+            local[subset] = torch.arange(U, device=r.device)
         flat, te, seg = self._inside(self.corner_ev, g, r.device)
+        if local is not None and len(flat):
+            k, p = torch.div(flat, P, rounding_mode="floor"), flat % P
+            ok = local[p] >= 0
+            flat, te, seg = k[ok] * U + local[p[ok]], te[ok], seg[ok]
         if len(flat):
-            uu, vv, dd = project(r.corners.reshape(-1, 3)[flat], r.intr, r.axis, te, xp=torch)
-            at = seg * (4 * P) + flat
+            uu, vv, dd = project(corners.reshape(-1, 3)[flat], r.intr, r.axis, te, xp=torch)
+            at = seg * (4 * U) + flat
             u_lo = u_lo.scatter_reduce(0, at, uu, "amin")
             u_hi = u_hi.scatter_reduce(0, at, uu, "amax")
             v_lo = v_lo.scatter_reduce(0, at, vv, "amin")
             v_hi = v_hi.scatter_reduce(0, at, vv, "amax")
             d_lo = d_lo.scatter_reduce(0, at, dd, "amin")
         p, te, seg = self._inside(self.centre_ev, g, r.device)
+        if local is not None and len(p):
+            ok = local[p] >= 0
+            p, te, seg = local[p[ok]], te[ok], seg[ok]
         if len(p):
-            zz = depth(r.points[p], r.axis, te, xp=torch)
-            at = seg * P + p
+            zz = depth(points[p], r.axis, te, xp=torch)
+            at = seg * U + p
             z_lo = z_lo.scatter_reduce(0, at, zz, "amin")
             z_hi = z_hi.scatter_reduce(0, at, zz, "amax")
-        shape = (B, 4, P)
+        shape = (B, 4, U)
         return (u_lo.view(shape), u_hi.view(shape), v_lo.view(shape), v_hi.view(shape), d_lo.view(shape),
-                z_lo.view(B, P), z_hi.view(B, P))
+                z_lo.view(B, U), z_hi.view(B, U))
+
+    def union(self, a: float, b: float):
+        """Per surfel where its footprint can be over ``[a, b]``, with room for rounding (:func:`.surfel_cover.union_of`)."""
+        return union_of(*(x[0] for x in self.ranges([a, b])))
 
     def maybe_visible(self, a: float, b: float) -> np.ndarray:
         """Surfels that can cover a native pixel for some alpha in ``[a, b]`` (a superset)."""

@@ -26,7 +26,8 @@ from .cloud import Cloud
 from .errors import require
 from .framing import EDGE_EPS, SAFETY, VALUE_EPS, Imaging, block_mean64
 from .partition import validate_grid
-from .surfel import FootprintSweep, SurfelRenderer, covered_pairs
+from .surfel import FootprintSweep, SurfelRenderer
+from .surfel_cover import UnionPolicy, first_covers
 
 
 @dataclass
@@ -174,6 +175,7 @@ def hulls_within(renderer: SurfelRenderer, lo: float, hi: float, *, max_bytes: i
     another (:func:`.coverage.frontier_reach`) as for one whole plan (:func:`segment_hulls`). A grid
     whose bounds need more than ``max_bytes`` is refused."""
     sweep = _HullSweep(renderer, float(lo), float(hi))
+    sweep.policy = UnionPolicy()
     h, w = renderer.imaging.out_shape
 
     def hulls(g) -> HullValues:
@@ -202,6 +204,8 @@ class _HullSweep(FootprintSweep):
     """Bounds the surfel footprints over batches of consecutive segments: every tensor operation serves
     a whole batch, so its cost (and the wake-up of torch's threads) is shared by the segments."""
 
+    policy = None   # set per sweep (.surfel_cover.UnionPolicy)
+
     @property
     def batch(self) -> int:
         """Segments per batch."""
@@ -209,46 +213,28 @@ class _HullSweep(FootprintSweep):
 
     def segments(self, g) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``lo, hi`` (B, h, w, 3) float32 and ``constant`` (B, h, w) of the segments of the grid ``g``."""
-        return self._bound(*self.ranges(g))
-
-    def _bound(self, u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi):
         r = self.r
+        g = np.asarray(g, dtype=np.float64)
+        B, P = len(g) - 1, self.P
         H, W = r.intr.height, r.intr.width
+        # candidates: possibly covering at some alpha of the segment, and among them the surely covering ones
+        # (the sure box lies inside the sweep box, sure_drawn implies maybe): the first surely covering surfel in
+        # occlusion order (its rank; P: none) per segment and native pixel hides every later surfel throughout
+        # the segment (the order is constant in alpha, equal keys included: the renderer's own ranks), so the
+        # candidates are the possibly covering surfels up to it (.surfel_cover.first_covers: that one alone
+        # where nothing else can be, decided once for the batch from where the footprints can be over it)
+        sure_first, q, cp = first_covers(self.union(float(g[0]), float(g[-1])), lambda sub: _segment_boxes(*self.ranges(g, sub), H, W),
+                                         B, EDGE_EPS, -EDGE_EPS, r.rank, r.samples, candidates=True, policy=self.policy)
+        sure_first = sure_first.view(-1)
         HW = H * W
-        B, _, P = u_lo.shape
         dev = r.device
-        # a surfel is drawn at alpha iff every corner and its centre are in front of the camera
-        sure_drawn = (d_lo > 0).all(1) & (z_lo > 0)                                           # (B, P)
-        maybe = z_hi > 0
-        # where a corner may cross depth 0 its projection is unbounded: the whole image
-        wild = maybe & ~sure_drawn
-        big = float(max(H, W)) + 10.0
-        sw_u0 = u_lo.amin(1).masked_fill_(wild, -big)
-        sw_u1 = u_hi.amax(1).masked_fill_(wild, big)
-        sw_v0 = v_lo.amin(1).masked_fill_(wild, -big)
-        sw_v1 = v_hi.amax(1).masked_fill_(wild, big)
-        # surely covered: left edge at its rightmost, right edge at its leftmost (module doc)
-        su0, su1 = u_hi.amin(1), u_lo.amax(1)
-        sv0, sv1 = v_hi.amin(1), v_lo.amax(1)
-        # candidates: possibly covering at some alpha of the segment (q: segment and native pixel), and
-        # among them the surely covering pairs (the sure box lies inside the sweep box, sure_drawn implies maybe)
-        cp, q, is_sure = covered_pairs(sw_u0, sw_u1, sw_v0, sw_v1, maybe, r.samples, EDGE_EPS,
-                                       inner=(su0, su1, sv0, sv1, sure_drawn, -EDGE_EPS))
-        # the first surely covering surfel in occlusion order (its rank; P: none), per segment and native
-        # pixel: it hides every later surfel throughout the segment (the order is constant in alpha, equal
-        # keys included: the renderer's own ranks)
-        sure_first = torch.full((B * HW,), P, dtype=torch.long, device=dev)
-        sure_first.scatter_reduce_(0, q[is_sure], r.rank[cp[is_sure]], reduce="amin", include_self=True)
-        rc = r.rank[cp]
-        keep = rc <= sure_first[q]
-        cp, q = cp[keep], q[keep]
         # the values of the native pixels: the renderer's own float32 colours (and its uncovered value of
         # each pixel where no surfel surely covers it), their least and greatest per channel exactly
         col = r.colors
         open_ = (sure_first == P)[:, None]
         uncovered = r.uncovered.repeat(B, 1)                                               # (B HW, 3)
-        lo = torch.where(open_, uncovered, torch.tensor(float("inf"), dtype=col.dtype, device=dev))
-        hi = torch.where(open_, uncovered, torch.tensor(float("-inf"), dtype=col.dtype, device=dev))
+        lo = torch.where(open_, uncovered, col[r.by_rank[sure_first]])
+        hi = lo.clone()
         if len(cp):
             idx = q[:, None].expand(-1, 3)
             vals = col[cp]
@@ -269,6 +255,22 @@ class _HullSweep(FootprintSweep):
         if by:
             one[:, :by] = one[:, h - by:] = True
         return (lo_o.cpu().numpy().astype(np.float32), hi_o.cpu().numpy().astype(np.float32), one.cpu().numpy())
+
+
+def _segment_boxes(u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi, H: int, W: int):
+    """Per segment and surfel (:meth:`.surfel.FootprintSweep.ranges`) the sweep box (where the footprint can be),
+    whether it may be drawn, the sure box (where it surely is) and whether it is surely drawn, each (B, P)."""
+    # a surfel is drawn at alpha iff every corner and its centre are in front of the camera
+    sure_drawn = (d_lo > 0).all(1) & (z_lo > 0)                                           # (B, P)
+    maybe = z_hi > 0
+    # where a corner may cross depth 0 its projection is unbounded: the whole image
+    wild = maybe & ~sure_drawn
+    big = float(max(H, W)) + 10.0
+    sweep = (u_lo.amin(1).masked_fill_(wild, -big), u_hi.amax(1).masked_fill_(wild, big),
+             v_lo.amin(1).masked_fill_(wild, -big), v_hi.amax(1).masked_fill_(wild, big))
+    # surely covered: left edge at its rightmost, right edge at its leftmost (module doc)
+    sure = (u_hi.amin(1), u_lo.amax(1), v_hi.amin(1), v_lo.amax(1))
+    return sweep, maybe, sure, sure_drawn
 
 
 __all__ = ["HullValues", "hulls_within", "render_plan_surfel", "segment_hulls"]

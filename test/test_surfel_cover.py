@@ -1,0 +1,107 @@
+"""The union kernel of :mod:`pws_ros.core.surfel_cover` gives bit for bit what enumerating every pose's or
+segment's pairs gives (the renderer and the bounds before it; :func:`reference_first_covers`), on random
+clouds with holes, ulp-close duplicates, points near the camera plane and behind it, every axis, fine and
+coarse grids (the union path forced on, whatever the motion); and the restricted footprint ranges equal the
+full ones. The brute-force tests of test_imaging.py check both against the documented model."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import pws_ros.core.surfel as surfel_mod
+import pws_ros.core.surfel_cover as cover
+from pws_ros.core.camera import CameraIntrinsics
+from pws_ros.core.cloud import Cloud, cloud_from_rgbd
+from pws_ros.core.imaging import SurfelRenderer, hulls_within, make_imaging
+from pws_ros.core.surfel import FootprintSweep
+
+CAM = CameraIntrinsics(32, 24, 30.0, 31.0, 15.5, 11.5, "cam")   # native 32x24, model 16x12
+RADIUS = {"tx": 0.03, "ty": 0.03, "tz": 0.06, "rx": 0.03, "ry": 0.03, "rz": 0.08}
+
+
+def random_cloud(rng) -> Cloud:
+    depth = rng.uniform(0.8, 1.6, CAM.shape)
+    depth[rng.random(CAM.shape) < 0.1] = 0.0
+    depth[:, : CAM.width // 3] = 1.0                       # a flat patch: equal depths
+    r0, c0 = rng.integers(0, CAM.height - 6), rng.integers(0, CAM.width - 8)
+    depth[r0:r0 + 6, c0:c0 + 8] = 0.5                      # a near box: depth edges
+    cloud = cloud_from_rgbd(depth, rng.random(CAM.shape + (3,)).astype(np.float32), CAM)
+    pts, cols = cloud.points, cloud.colors
+    extra = np.array([[0.01, 0.0, 1e-3], [0.02, -0.01, 0.02], [0.1, 0.1, -0.5], [0.0, 0.0, 0.0]])  # near / behind
+    k = 5
+    idx = rng.choice(len(pts), k)
+    dup = pts[idx] * (1.0 + rng.integers(-3, 4, k)[:, None] * np.finfo(np.float64).eps)
+    pts = np.concatenate([pts, extra, dup])
+    cols = np.concatenate([cols, rng.random((len(extra) + k, 3)).astype(np.float32)])
+    perm = rng.permutation(len(pts))
+    return Cloud(pts[perm], cols[perm])
+
+
+def _both(monkeypatch, fn):
+    """fn() with the union path forced on wherever it applies, and with the reference enumeration only."""
+    monkeypatch.setattr(cover, "MOTION_LIMIT", float("inf"))
+    monkeypatch.setattr(cover, "DYNAMIC_SHARE", float("inf"))
+    fast = fn()
+    monkeypatch.setattr(cover, "range_implied", lambda samples: False)
+    monkeypatch.setattr(surfel_mod, "range_implied", lambda samples: False)
+    return fast, fn()
+
+
+@pytest.mark.parametrize("axis", ["tx", "ty", "tz", "rx", "ry", "rz"])
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("coarse", [False, True])
+def test_union_kernel_equals_the_enumeration(monkeypatch, axis, seed, coarse):
+    rng = np.random.default_rng(seed)
+    cloud = random_cloud(rng)
+    b = RADIUS[axis] * (4.0 if coarse else 1.0)
+    im = make_imaging("surfel", CAM, (12, 16), render_factor=2, uncovered="frame")
+    grid = np.union1d(np.sort(rng.uniform(-b, b, 40 if coarse else 90)), [-b, 0.0, b])
+    fine = np.linspace(grid[10], grid[11], 7)
+
+    def run():
+        r = SurfelRenderer(cloud, im, axis, alpha_range=(-b, b))
+        frames = r.render_batch(grid).numpy()
+        hulls = hulls_within(r, -b, b)
+        return frames, hulls(grid), hulls(fine)
+
+    (f1, h1, g1), (f0, h0, g0) = _both(monkeypatch, run)
+    assert np.array_equal(f1, f0)
+    for x, y in ((h1, h0), (g1, g0)):
+        assert np.array_equal(x.lo, y.lo) and np.array_equal(x.hi, y.hi) and np.array_equal(x.constant, y.constant)
+
+
+@pytest.mark.parametrize("axis", ["tz", "ry", "rz"])
+def test_ranges_of_a_subset_are_those_of_the_whole(axis):
+    rng = np.random.default_rng(3)
+    cloud = random_cloud(rng)
+    im = make_imaging("surfel", CAM, (12, 16), render_factor=2)
+    r = SurfelRenderer(cloud, im, axis)
+    b = RADIUS[axis] * 3
+    sweep = FootprintSweep(r, -b, b)
+    g = np.linspace(-b, b, 9)
+    sub = torch.as_tensor(np.sort(rng.choice(r.num_points, r.num_points // 3, replace=False)))
+    full, part = sweep.ranges(g), sweep.ranges(g, sub)
+    for x, y in zip(full, part):
+        assert torch.equal(x[..., sub], y)
+    fp, fs = r.footprints(torch.as_tensor(g)), r.footprints(torch.as_tensor(g), sub)
+    for x, y in zip(fp, fs):
+        assert torch.equal(x[..., sub], y)
+
+
+def test_union_holds_every_footprint_and_sweep_box():
+    rng = np.random.default_rng(5)
+    cloud = random_cloud(rng)
+    im = make_imaging("surfel", CAM, (12, 16), render_factor=2)
+    for axis in ("tz", "ry", "rz"):
+        r = SurfelRenderer(cloud, im, axis)
+        b = RADIUS[axis] * 2
+        sweep = FootprintSweep(r, -b, b)
+        g = np.linspace(-b, b, 11)
+        (U, umask, I, imask) = sweep.union(-b, b)
+        umin, umax, vmin, vmax, zc, drawn = r.footprints(torch.as_tensor(g))
+        assert bool((~drawn | umask).all())
+        ok = ~drawn | ((U[0] <= umin) & (umax <= U[1]) & (U[2] <= vmin) & (vmax <= U[3]))
+        assert bool(ok.all())
+        inside = ~imask | (drawn & (umin <= I[0]) & (I[1] <= umax) & (vmin <= I[2]) & (I[3] <= vmax))
+        assert bool(inside.all())
