@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.stats import norm
 
-from conftest import MeanThresholdNet
+from conftest import MeanThresholdNet, recomputed_p_a_lower
 from test_imaging import CAM, SCALE, random_cloud, reference_frame
 from pws_ros.core.certify import CertifyConfig, certify
 from pws_ros.core.coverage import frontier_reach
@@ -122,8 +122,9 @@ def test_surfel_certificate_holds_under_brute_force_rendering(seed, axis, z, num
     weak = num_anchors > 1 and cert.num_bounds == 1 and cert.n == num_anchors * config.n
     if z < 1:
         assert weak, "a weak frame spends the whole estimation budget on the centre"
-    else:
-        assert cert.n == config.n
+    else:   # the samples of the looks it made (core.sequential), every bound recomputed from the votes it records
+        assert cert.n in cert.bounds["looks"]["sizes"]
+        assert np.allclose(cert.p_a_lower, recomputed_p_a_lower(cert), rtol=1e-9, atol=1e-12)
     if cert.status == "abstain":
         return
     assert cert.radius > 0

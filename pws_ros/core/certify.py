@@ -487,35 +487,46 @@ def refined_hulls(bounds_of, old_grid: np.ndarray, old, grid: np.ndarray):
     return HullValues(grid, lo, hi, constant, dict(old.details, segments=S))
 
 
-def placement(k0: int, config: CertifyConfig) -> tuple[Looks, int, Callable[[int], float]]:
-    """``(looks, most anchors, target_of)`` of the adaptive anchors after ``k0`` of the ``n0`` selection votes
-    went to the top class (:mod:`.sequential`), fixed before any estimation sample is drawn:
+def placement(k0: int, config: CertifyConfig) -> tuple[Callable[[int], Looks], int, Callable[[int], float]]:
+    """``(looks_of, most anchors, target_of)`` of the adaptive anchors after ``k0`` of the ``n0`` selection
+    votes went to the top class (:mod:`.sequential`), fixed before any estimation sample is drawn:
 
     * where the selection predicts that the anchors will keep the label together (:func:`.sequential.joint_rate`),
-      a joint first look of ``n_first`` samples, then an individual look of ``n`` for the anchors it leaves
-      short, with up to ``num_anchors * n // n_first`` anchors (the estimation budget ``num_anchors * n``);
+      the joint plan: ``K`` anchors share the estimation budget ``num_anchors * n`` in a joint first look of
+      ``m = num_anchors * n // K`` samples each (at least ``n_first``: up to ``num_anchors * n // n_first``
+      anchors), then, where ``m < n``, an individual look of ``n`` for the anchors it leaves short;
     * else one individual look of ``n`` samples for at most ``num_anchors`` anchors (``n_first`` 0: always).
 
-    The one with the larger target per sample is chosen; ``target_of(K)`` is the Cohen radius the selection
-    predicts for one of ``K`` anchors at the first look (:func:`.anchors.target_radius`; a planning value)."""
-    n0, n, sigma, alpha, budget = int(config.n0), int(config.n), float(config.sigma), float(config.alpha), int(config.num_anchors) * int(config.n)
+    The one with the larger target per sample at the most anchors is chosen. ``looks_of(K)``: the looks of
+    ``K`` anchors; ``target_of(K)``: the Cohen radius the selection predicts for one of them at the first
+    look (:func:`.anchors.target_radius`; a planning value). Fewer anchors get more samples each, hence a
+    larger target: a placement stopped by a segment no grid frame covers at the target of many anchors
+    tries fewer (:func:`.anchors.best_placement`)."""
+    n0, n, sigma, alpha = int(config.n0), int(config.n), float(config.sigma), float(config.alpha)
+    budget = int(config.num_anchors) * n
 
     def individual(k: int) -> float:
         return target_radius(int(k0), n0, n, sigma, alpha, int(k))
 
+    def fixed(k: int) -> Looks:
+        return single(n)
+
     if int(config.n_first) <= 0:
-        return single(n), int(config.num_anchors), individual
-    looks = joint_looks(int(config.n_first), n)
-    m = int(looks.sizes[0])
-    most = max(1, budget // m)
+        return fixed, int(config.num_anchors), individual
+    most = max(1, budget // min(int(config.n_first), n))
+
+    def looks_of(k: int) -> Looks:
+        return joint_looks(max(1, budget // max(1, int(k))), n)
 
     def joint(k: int) -> float:
-        rate = joint_rate(int(k0), n0, int(k))
-        return predicted_target(int(np.floor(m * rate)), m, sigma, looks.level(0, alpha, int(k)))
+        looks = looks_of(k)
+        m = int(looks.sizes[0])
+        return predicted_target(int(np.floor(m * joint_rate(int(k0), n0, int(k)))), m, sigma, looks.level(0, alpha, int(k)))
 
-    if joint(most) / m >= individual(int(config.num_anchors)) / n:
-        return looks, most, joint
-    return single(n), int(config.num_anchors), individual
+    m_most = int(looks_of(most).sizes[0])
+    if joint(most) / m_most >= individual(int(config.num_anchors)) / n:
+        return looks_of, most, joint
+    return fixed, int(config.num_anchors), individual
 
 
 def largest_target(config: CertifyConfig) -> tuple[float, int]:
@@ -585,7 +596,7 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     if progress is not None:
         progress(config.n0, total_work)
     k0 = int(counts0[0, label])
-    looks, max_anchors, target_of = placement(k0, config)
+    looks_of, max_anchors, target_of = placement(k0, config)
     target = target_of(max_anchors)
     if target <= 0 < max_anchors - 1:
         # too weak for the whole budget's Bonferroni level: the centre alone (level alpha), with the whole
@@ -593,7 +604,10 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
         # (a planning choice made from the selection samples only: the bound uses the anchors placed and
         # the sample count fixed here, before any estimation sample is drawn); its samples come n at a time
         # and the axis stops as soon as they make a bound above 1/2 all but impossible (.sequential.futile)
-        looks, max_anchors = single(budget_samples), 1
+        max_anchors = 1
+
+        def looks_of(k: int) -> Looks:
+            return single(budget_samples)
 
         def target_of(k: int) -> float:
             return target_radius(k0, int(config.n0), budget_samples, config.sigma, config.alpha, k)
@@ -635,7 +649,7 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
             # farther on this grid (:func:`.anchors.best_placement`; bounds and selection samples only)
             chosen = best_placement(rule, row, plan.alphas, centre, max_anchors, target_of, plan.radius,
                                     first=(est_idx, anchor_rows))
-        if best is None or chosen[0] > best[0]:
+        if best is None or chosen[0] >= best[0]:   # a tie: the refined grid (finer segments, tighter bounds)
             best = (chosen[0], plan, frames, hulls, centre, chosen[1], chosen[2], chosen[3])
         t_stats += time.perf_counter() - t1
         if target <= 0 or attempt == 2 or predicted >= plan.radius:
@@ -657,14 +671,18 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     predicted, plan, frames, hulls, centre, est_idx, anchor_rows, budget = best
     N = plan.num_partitions
     K = len(est_idx)
+    # the looks, from the bounds and the selection samples only, before any estimation draw: the budget the
+    # anchors were placed for where they cover the request at its target; else (short of it) the K anchors
+    # placed share the whole estimation budget (a larger look each: joint plan, .sequential)
+    covers_request = rule.predicted_reach(anchor_rows, est_idx, plan.alphas, centre, target_of(budget)) >= plan.radius
+    looks = looks_of(budget if covers_request else K)
     spread = bool(config.spread_estimation) and 0 < K and predicted < plan.radius
     if spread and budget_samples // K > looks.last:
-        # a planning choice from the bounds and the selection samples only, made before any estimation draw:
         # the samples the axis was sized for go to the anchors there are (one look of num_anchors * n // K
-        # samples each, joint where the plan's first look was, the same K)
+        # samples each, joint where the plan's first look was, the same K): CertifyConfig.spread_estimation
         looks = Looks((budget_samples // K,), (1.0,), looks.joint)
     D2 = np.stack([anchor_rows[int(a)] for a in est_idx])
-    planned = target_of(K)
+    planned = target_of(budget if covers_request else K)   # the radius each anchor is planned to get
 
     def votes_of(idx: np.ndarray, m: int) -> np.ndarray:
         # the anchors of a call share their noise draws (common random numbers: each bound holds, Bonferroni
