@@ -266,8 +266,9 @@ class FinetuneRun:
         truth_frames = sum(1 for c, s in zip(caches, train_split) for k in s if c.frames[k]["truth_label"] >= 0) if o.use_truth else 0
         self.log("info", f"training the {o.mode} ({student.num_params()} parameters) on {device}: {trainer.total} steps "
                          f"({o.epochs} epochs x {trainer.steps_per_epoch}) of {o.batch_size} noisy images at sigma {sigma:g}, "
-                         f"targets: " + (f"ground truth on {truth_frames} frame(s), " if truth_frames else "")
-                         + ("" if o.fresh_head else f"the teacher's {'probabilities' if o.targets == 'soft' else 'top class'}")
+                         f"targets: " + ", ".join(([f"ground truth on {truth_frames} frame(s)"] if truth_frames else [])
+                                                  + ([] if o.fresh_head else
+                                                     [f"the teacher's {'probabilities' if o.targets == 'soft' else 'top class'}"]))
                          + (f", consistency weight {o.consistency:g}" if o.consistency > 0 else "")
                          + (f", {o.clean_share:.0%} of each batch clean" if o.clean_share > 0 else "")
                          + (", augmented (colour gains, shifts, scales)" if o.augment else ""))
