@@ -171,3 +171,54 @@ def test_real_task_table_reads_the_curve_and_names_what_limited_each_frame():
     assert limited_by({**row, "status": "certified", "radius": "0.01"}, 0.01, req) == "reached"
     assert limited_by(row, 0.0042, req) == "ceiling"        # 0.004 >= 90% of the ceiling 0.0042
     assert limited_by(row, 0.01, req) == "model"            # the imaging allowed the whole radius
+
+
+def test_small_cnn_backbone_with_clean_share_and_augment_trains_and_exports(tmp_path, capsys):
+    """--backbone small_cnn (from scratch, grey levels) with --clean-share and --augment: one epoch on the tiny
+    folder writes a model file of the label set that takes the input size and records the settings (red and
+    blue planes have one grey level: no accuracy is asked of a grey-level model here)."""
+    from pws_ros.core.model import load_model
+
+    root = tmp_path / "data"
+    make_folder(root)
+    rec = tmp_path / "all"
+    assert run(["import", "frames", root, "--out", rec, *CAMERA, "--label-regex", REGEX, "--quiet"], capsys)[0] == 0
+    model = tmp_path / "small.pt"
+    rc, text, err = run(["finetune", rec, "--backbone", "small_cnn", "--input-size", "24x32", "--holdout-clips", "clip2",
+                         "--sigma", SIGMA, "--epochs", "1", "--views", "1", "--batch-size", "4", "--eval-samples", "5",
+                         "--clean-share", "0.25", "--augment", "--out", model, "--quiet", "--json"], capsys)
+    assert rc == 0, err
+    report = json.loads(text)
+    assert report["classes"] == ["blue", "red"] and report["new_head"]
+    assert report["training"]["clean_share"] == 0.25 and report["training"]["augment"] is True
+    assert report["training"]["lr"] == pytest.approx(3e-3)
+    m = load_model(model)
+    assert list(m.class_names) == ["blue", "red"] and m.meta.get("backbone") == "small_cnn"
+    assert tuple(m(torch.rand(2, 3, 24, 32)).shape) == (2, 2)
+    rc, _text, err = run(["finetune", rec, "--backbone", "small_cnn", "--holdout-clips", "clip2", "--clean-share", "1",
+                          "--out", tmp_path / "x.pt", "--quiet"], capsys)
+    assert rc == 2 and "--clean-share" in err and not (tmp_path / "x.pt").exists()
+
+
+def test_augment_keeps_the_background_and_gains_the_drawn_pixels():
+    """Trainer.augment: without a shift or scale the background pixels stay the background exactly and the
+    drawn ones change by a gain within the documented range; with them the image stays in [0, 1]."""
+    import pws_ros.finetune.train as T
+
+    t = T.Trainer.__new__(T.Trainer)
+    t.background = 0.5
+    x = torch.full((4, 3, 12, 16), 128 / 255)
+    x[:, :, 3:8, 4:10] = 0.3
+    saved = (T.AUG_SHIFT, T.AUG_SCALE)
+    try:
+        T.AUG_SHIFT, T.AUG_SCALE = 0.0, 0.0
+        y = t.augment(x.clone(), torch.Generator().manual_seed(0))
+    finally:
+        T.AUG_SHIFT, T.AUG_SCALE = saved
+    bg = torch.ones_like(x, dtype=torch.bool)
+    bg[:, :, 3:8, 4:10] = False
+    assert torch.allclose(y[bg], x[bg], atol=1e-6)
+    ratio = y[:, :, 3:8, 4:10] / 0.3
+    assert ((ratio > 0.6 * 0.8 - 1e-6) & (ratio < 1.4 * 1.2 + 1e-6)).all() and not torch.allclose(ratio, torch.ones_like(ratio))
+    moved = t.augment(x.clone(), torch.Generator().manual_seed(1))
+    assert moved.shape == x.shape and float(moved.min()) >= 0.0 and float(moved.max()) <= 1.0

@@ -398,3 +398,104 @@ def test_window_draws_the_nearest_band_in_a_camera_window_around_it():
         volume_from_limits(0.0, 0.0, window=0.3)
     with pytest.raises(PwsError, match="window"):
         WorkingVolume(0.0, 1.5, window=-1.0)
+
+
+def reference_subject(points, candidates, fx, fy, cx, cy, width, height, step):
+    """The window's subject (docs/imaging.md 4b), loops only: pixel depths, flood fill, the largest cluster
+    that does not span the view (ties: nearer, then first pixel in row-major order), its points."""
+    depth = {}
+    where = {}
+    for i, (X, Y, Z) in enumerate(points):
+        if not candidates[i] or not Z > 0:
+            continue
+        c, r = math.floor(fx * X / Z + cx + 0.5), math.floor(fy * Y / Z + cy + 0.5)
+        if 0 <= c < width and 0 <= r < height:
+            where[i] = (r, c)
+            depth[(r, c)] = min(depth.get((r, c), math.inf), Z)
+    label = {}
+    clusters = []
+    for r in range(height):
+        for c in range(width):
+            if (r, c) not in depth or (r, c) in label:
+                continue
+            label[(r, c)] = len(clusters)
+            todo, members = [(r, c)], []
+            while todo:
+                a = todo.pop()
+                members.append(a)
+                for b in ((a[0] - 1, a[1]), (a[0] + 1, a[1]), (a[0], a[1] - 1), (a[0], a[1] + 1)):
+                    if b in depth and b not in label and abs(depth[a] - depth[b]) <= step:
+                        label[b] = len(clusters)
+                        todo.append(b)
+            clusters.append(members)
+    best = None
+    for k, members in enumerate(clusters):
+        rows = [m[0] for m in members]
+        cols = [m[1] for m in members]
+        if (min(cols) == 0 and max(cols) == width - 1) or (min(rows) == 0 and max(rows) == height - 1):
+            continue
+        key = (-len(members), min(depth[m] for m in members), min(rows[j] * width + cols[j] for j in range(len(members))))
+        if best is None or key < best[0]:
+            best = (key, k)
+    out = np.zeros(len(points), bool)
+    for i in range(len(points)):
+        if not candidates[i] or not points[i][2] > 0:
+            continue
+        if best is None:
+            out[i] = True
+        elif i in where and label[where[i]] == best[1] and abs(points[i][2] - depth[where[i]]) <= step:
+            out[i] = True
+    return out
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_window_subject_matches_a_brute_force_flood_fill(seed):
+    """window_subject (vectorised: pixel depths, scipy's connected components) equals the loops above on
+    small random scenes: blobs at random depths (some spanning the view), holes, stray points, points sharing
+    a pixel, points outside the image and behind the camera, a random candidate mask."""
+    from pws_ros.core.framing import SUBJECT_STEP, window_subject
+
+    rng = np.random.default_rng(seed)
+    W, H = int(rng.integers(4, 14)), int(rng.integers(3, 11))
+    cam = CameraIntrinsics(W, H, 10.0, 11.0, W / 2 - 0.3, H / 2 + 0.2)
+    depth = np.zeros((H, W))
+    for _ in range(int(rng.integers(1, 5))):
+        r0, c0 = int(rng.integers(0, H)), int(rng.integers(0, W))
+        r1, c1 = r0 + int(rng.integers(1, H + 1)), c0 + int(rng.integers(1, W + 1))
+        z = rng.uniform(0.3, 2.0)
+        depth[r0:r1, c0:c1] = z + rng.uniform(-1, 1, size=depth[r0:r1, c0:c1].shape) * rng.choice([0.0, 0.005, 0.03])
+    depth[rng.random((H, W)) < rng.uniform(0, 0.3)] = 0.0
+    rows, cols = np.nonzero(depth > 0)
+    z = depth[rows, cols]
+    pts = np.stack([(cols - cam.cx) * z / cam.fx, (rows - cam.cy) * z / cam.fy, z], axis=1)
+    extra = rng.normal(0, 1, size=(int(rng.integers(0, 6)), 3)) * [0.5, 0.5, 1.0] + [0, 0, 0.5]
+    dup = pts[rng.integers(0, len(pts), size=min(3, len(pts)))] * rng.uniform(0.9, 1.1) if len(pts) else np.zeros((0, 3))
+    points = np.concatenate([pts, extra, dup]) if len(pts) else np.concatenate([extra, np.zeros((1, 3)) + [0, 0, 1]])
+    cand = rng.random(len(points)) < rng.choice([1.0, 0.8])
+    got = window_subject(points, cand, cam)
+    want = reference_subject(points.tolist(), cand.tolist(), cam.fx, cam.fy, cam.cx, cam.cy, W, H, SUBJECT_STEP)
+    assert np.array_equal(got, want), (seed, np.flatnonzero(got ^ want))
+
+
+def test_window_follows_the_hand_not_a_nearer_wall_or_clutter():
+    """A wall nearer than the hand that spans the view (top to bottom) and small clutter blobs on the floor,
+    nearer still: the subject is the hand, the far face the hand's depth + the band, the crop around it."""
+    from pws_ros.core.framing import window_subject
+
+    cam = CameraIntrinsics(640, 480, 615.0, 615.0, 320.0, 240.0)
+    depth = np.full((480, 640), 3.0, np.float32)               # the room, outside the volume
+    depth[:, 400:] = np.linspace(0.7, 1.4, 240)[None, :]      # a slanted wall on the right, 0.7-1.4 m, top to bottom
+    depth[100:220, 0:200] = 1.0                                 # the hand and arm from the left at 1.0 m
+    for c in range(40, 360, 40):
+        depth[440:452, c:c + 10] = 0.6                          # floor clutter, 0.6 m
+    cloud = cloud_from_rgbd(depth, np.zeros((480, 640, 3), np.uint8), cam)
+    vol = WorkingVolume(0.0, 1.5, window=0.3)
+    subject = window_subject(cloud.points, vol.contains(cloud.points), cam)
+    assert np.allclose(cloud.points[subject, 2], 1.0) and subject.sum() == 120 * 200
+    im = make_imaging("surfel", cam, (60, 80), cloud=cloud, volume=vol, render_factor=2, border=0)
+    assert im.volume.far == pytest.approx(1.3)
+    assert im.crop[0] == 0 and im.crop[1] <= 100 and im.crop[1] + im.decimate * im.camera.height >= 220
+    assert im.decimate * im.camera.width <= 320                # the hand fills the window, not the whole frame
+    # the nearest 2% of the whole volume (the wall's near side, ~0.71 m) no longer decides the band
+    assert vol.for_frame(cloud.points).far < 1.05

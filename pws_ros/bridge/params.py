@@ -128,10 +128,11 @@ PARAMS: tuple[ParamSpec, ...] = (
                 f"frame: x right, y down); {axis}_min = {axis}_max = 0: no limit along {axis}", range=(-1e6, 1e6), nodes=_PLAN,
                 unit="m") for axis in ("x", "y") for end in ("min", "max")),
     ParamSpec("working_volume.window", 0.0, "surfel imaging, with a working volume: > 0 = per frame only its nearest "
-              "`window` metres (from the 2nd percentile of the depths of the frame's points inside it: e.g. a hand and arm, "
-              "not the wall behind) are drawn, in a camera window around them (the smallest crop of the input's aspect, at "
-              "most the whole frame's, that holds them, widened by 15%): chosen once at alpha = 0 from the depth; 0 = the "
-              "whole volume, centred crop", range=(0.0, 1e6), nodes=_PLAN, unit="m"),
+              "`window` metres behind its subject (the largest depth-connected cluster of the volume's points that does "
+              "not span the view from edge to opposite edge: e.g. a hand and arm, not a wall or floor; docs/imaging.md 4b) "
+              "are drawn, in a camera window around the subject (the smallest crop of the input's aspect, at most the "
+              "whole frame's, that holds it, widened by 15%): chosen once at alpha = 0 from the depth; 0 = the whole "
+              "volume, centred crop", range=(0.0, 1e6), nodes=_PLAN, unit="m"),
     ParamSpec("render_width", 0, "paper imaging: rendered frame width; 0 = the model's declared input size (else the camera's)", range=(0, 8192), read_only=True, nodes=_PLAN, unit="px"),
     ParamSpec("render_height", 0, "paper imaging: rendered frame height; 0 = the model's declared input size (else the camera's)", range=(0, 8192), read_only=True, nodes=_PLAN, unit="px"),
     # -- smoothing and statistics --

@@ -177,7 +177,8 @@ def add_volume_config_args(group) -> None:
     finetune): they override ``working_volume.*`` and ``background``."""
     add_working_volume_arg(group, "(default: config working_volume, none)")
     group.add_argument("--window", type=float, default=None, metavar="BAND",
-                       help="with a working volume: per frame only its nearest BAND metres, in a camera window around them "
+                       help="with a working volume: per frame only BAND metres from its subject (the largest depth-connected "
+                            "cluster not spanning the view: a hand and arm, not a wall), in a camera window around it "
                             "(chosen at alpha = 0 from the depth; config working_volume.window; 0 = off)")
     group.add_argument("--background", type=float, default=None, metavar="V",
                        help="value in [0, 1] of the masked border and of what no drawn point covers, e.g. outside the "

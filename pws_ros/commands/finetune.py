@@ -32,9 +32,10 @@ the model itself. --mode denoiser trains a small residual denoiser placed before
 (KL + --mse-weight x MSE to the clean frame) and writes both the combined model (OUT) and the
 denoiser alone (OUT stem + .denoiser.pt, for `pws replay --model ORIGINAL --denoiser ...`).
 
-Labelled recordings (`pws import frames`): --backbone efficientnet_lite0 (or --model M --new-head)
-builds a new head for the label set of the recordings' ground truth and trains it on noisy copies,
-cross-entropy to each frame's label (--consistency W adds the consistency regulariser); every frame
+Labelled recordings (`pws import frames`): --backbone efficientnet_lite0 or small_cnn (or --model M
+--new-head) builds a new head for the label set of the recordings' ground truth and trains it on noisy copies,
+cross-entropy to each frame's label (--consistency W adds the consistency regulariser, --clean-share
+and --augment keep the base classifier good on clean frames and other clips); every frame
 needs a label. --holdout-clips holds whole clips out (frames of a clip are near duplicates). With
 the ground truth used, a label outside the model's classes is an error naming the frame.
 
@@ -80,9 +81,10 @@ def register(subparsers) -> None:
     p.add_argument("--classes", default=None, help="class-names file (default: beside the model)")
 
     h = p.add_argument_group("labels: a new head, held out by clip")
-    h.add_argument("--backbone", default=None, choices=("efficientnet_lite0",),
-                   help="instead of --model: this pretrained backbone (ImageNet weights, the .[efficientnet] extra) with a new "
-                        "head for the recordings' label set")
+    h.add_argument("--backbone", default=None, choices=("efficientnet_lite0", "small_cnn"),
+                   help="instead of --model: efficientnet_lite0 (ImageNet weights, the .[efficientnet] extra) with a new head "
+                        "for the recordings' label set, or small_cnn (a small grey-level CNN trained from scratch, for small "
+                        "inputs such as an 80x60 camera window; docs/real_task.md)")
     h.add_argument("--new-head", action="store_true", help="with --model: a new linear head for the recordings' label set on its outputs")
     h.add_argument("--input-size", default=None, metavar="HxW", help="new head: its input size, e.g. 120x160 (default: the model's, else 120x160)")
     h.add_argument("--holdout-clips", default=None, metavar="GLOBS",
@@ -90,6 +92,12 @@ def register(subparsers) -> None:
                         "'G0*/clip04'); replaces --holdout")
     h.add_argument("--consistency", type=float, default=0.0, metavar="W",
                    help="consistency regularisation: two noisy copies per image, + W x KL of each to their mean (default 0: off)")
+    h.add_argument("--clean-share", type=float, default=0.0, metavar="F",
+                   help="this share of each batch is trained without noise, so the base classifier is good on clean images "
+                        "too (default 0: every image noisy)")
+    h.add_argument("--augment", action="store_true",
+                   help="random colour gains (x0.6-1.4 per channel, x0.8-1.2 overall) on the drawn pixels (not the "
+                        "background), shifts of up to 6 input pixels and scales of x0.85-1.15 about the centre, per image")
 
     t = p.add_argument_group("training")
     t.add_argument("--mode", choices=MODES, default=DEFAULT_MODE,
@@ -166,6 +174,7 @@ def options_from_args(args: argparse.Namespace):
     return FinetuneOptions(
         bags=[Path(b) for b in args.bags], model=Path(args.model) if args.model else None, out=Path(args.out),
         backbone=args.backbone, new_head=args.new_head, holdout_clips=clips, consistency=args.consistency, noise_warmup=args.noise_warmup,
+        clean_share=args.clean_share, augment=args.augment,
         input_size=parse_input_size(args.input_size) if args.input_size else None, config=cfg, sigma=args.sigma,
         mode=args.mode, targets=args.targets, use_truth=not args.no_truth, holdout=args.holdout, views=args.views,
         stride=args.stride, max_frames=args.max_frames, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,

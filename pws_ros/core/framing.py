@@ -167,20 +167,98 @@ def make_imaging(kind: str, intr: CameraIntrinsics, model_size: tuple[int, int] 
     return replace(im, border=(int(bx), int(by)))
 
 
-WINDOW_MARGIN = 0.15   # the camera window: the box of the nearest points, widened by this share on each side
+WINDOW_MARGIN = 0.15   # the camera window: the box of the subject's points, widened by this share on each side
+SUBJECT_STEP = 0.02    # m: neighbouring pixels whose depths differ by at most this belong to one cluster (the window's subject)
+
+
+def window_subject(points: np.ndarray, candidates: np.ndarray, intr: CameraIntrinsics,
+                   step: float = SUBJECT_STEP) -> np.ndarray:
+    """(N,) bool: the camera window's **subject** among the ``candidates`` ((N,) bool: the measured points
+    inside the working volume), decided from the depth alone (docs/imaging.md section 4b):
+
+    1. each candidate with ``Z > 0`` falls in the camera pixel ``(floor(v + 1/2), floor(u + 1/2))``,
+       ``u = fx X/Z + cx``, ``v = fy Y/Z + cy`` (the pixel it was measured in); the pixel's depth is the
+       smallest ``Z`` there (candidates outside the image take no part);
+    2. 4-neighbouring pixels whose depths differ by at most ``step`` are connected: clusters;
+    3. a cluster **spans the view** when its pixels reach both the left and the right column or both the
+       top and the bottom row of the image (a wall, a floor, a table top); the subject is the **largest
+       cluster that does not** (most pixels; ties: the nearer smallest depth, then the first pixel in
+       row-major order): e.g. a hand and arm before a wall;
+    4. its points: the candidates in its pixels within ``step`` of the pixel's depth.
+
+    Where every cluster spans the view (or no candidate falls in the image), the subject is every
+    candidate (the nearest of the whole volume decides the window, as without clusters)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    p = np.asarray(points, dtype=np.float64)
+    cand = np.asarray(candidates, dtype=bool) & (p[:, 2] > 0)
+    W, H = intr.width, intr.height
+    idx = np.flatnonzero(cand)
+    if not len(idx):
+        return cand
+    q = p[idx]
+    col = np.floor(intr.fx * q[:, 0] / q[:, 2] + intr.cx + 0.5)
+    row = np.floor(intr.fy * q[:, 1] / q[:, 2] + intr.cy + 0.5)
+    seen = (col >= 0) & (col < W) & (row >= 0) & (row < H)
+    if not seen.any():
+        return cand
+    idx, z = idx[seen], q[seen, 2]
+    pix = row[seen].astype(np.int64) * W + col[seen].astype(np.int64)
+    depth = np.full(H * W, np.inf)
+    np.minimum.at(depth, pix, z)
+    has = np.isfinite(depth)
+    grid = np.arange(H * W).reshape(H, W)
+    src, dst = [], []
+    for a, b in ((grid[:, :-1], grid[:, 1:]), (grid[:-1, :], grid[1:, :])):
+        a, b = a.reshape(-1), b.reshape(-1)
+        link = has[a] & has[b]
+        a, b = a[link], b[link]
+        near = np.abs(depth[a] - depth[b]) <= step
+        src.append(a[near])
+        dst.append(b[near])
+    node = np.full(H * W, -1, np.int64)
+    nodes = np.flatnonzero(has)
+    node[nodes] = np.arange(len(nodes))
+    r, c = node[np.concatenate(src)], node[np.concatenate(dst)]
+    graph = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(len(nodes), len(nodes)))
+    count, label = connected_components(graph, directed=False)
+    rows, cols = nodes // W, nodes % W
+    size = np.bincount(label, minlength=count)
+    spans = np.zeros(count, bool)
+    for lo_hit, hi_hit in ((cols == 0, cols == W - 1), (rows == 0, rows == H - 1)):
+        lo_any = np.bincount(label, weights=lo_hit, minlength=count) > 0
+        hi_any = np.bincount(label, weights=hi_hit, minlength=count) > 0
+        spans |= lo_any & hi_any
+    if spans.all():
+        return cand
+    zmin = np.full(count, np.inf)
+    np.minimum.at(zmin, label, depth[nodes])
+    first = np.full(count, len(nodes))
+    np.minimum.at(first, label, np.arange(len(nodes)))
+    ok = np.flatnonzero(~spans)
+    best = ok[np.lexsort((first[ok], zmin[ok], -size[ok]))[0]]
+    mine = np.zeros(H * W, bool)
+    mine[nodes[label == best]] = True
+    keep = mine[pix] & (np.abs(z - depth[pix]) <= step)
+    out = np.zeros(len(p), bool)
+    out[idx[keep]] = True
+    return out
 
 
 def _window(volume: WorkingVolume, cloud: Cloud, intr: CameraIntrinsics, k: int, s_max: int, w: int, h: int):
-    """The frame's volume (:meth:`WorkingVolume.for_frame`) and the camera window around its measured points
-    (``volume.window`` > 0): the box of their pixels (1st to 99th percentile, widened by WINDOW_MARGIN), the
-    smallest crop of the input's aspect, ``s k`` camera pixels per input pixel (s <= the whole frame's), that
-    holds it, centred on it and kept inside the camera image. Returns (volume, s, x0, y0)."""
+    """The frame's volume (:meth:`WorkingVolume.for_frame` of the :func:`window_subject`) and the camera window
+    around the subject (``volume.window`` > 0): the box of its pixels (1st to 99th percentile, widened by
+    WINDOW_MARGIN), the smallest crop of the input's aspect, ``s k`` camera pixels per input pixel (s <= the
+    whole frame's), that holds it, centred on it and kept inside the camera image. Returns (volume, s, x0, y0)."""
     filled = cloud.filled_mask
-    vol = volume.for_frame(cloud.points, filled)
     p = np.asarray(cloud.points, dtype=np.float64)
-    inside = vol.contains(p)
+    cand = volume.contains(p)
     if filled is not None:
-        inside &= ~np.asarray(filled, dtype=bool)
+        cand &= ~np.asarray(filled, dtype=bool)
+    subject = window_subject(p, cand, intr)
+    vol = volume.for_frame(p, filled, subject)
+    inside = vol.contains(p) & subject
     if not inside.any():
         return vol, s_max, (intr.width - s_max * k * w) // 2, (intr.height - s_max * k * h) // 2
     q = p[inside]
@@ -252,5 +330,5 @@ def block_mean64(x: torch.Tensor, im: Imaging) -> torch.Tensor:
     return out
 
 
-__all__ = ["DEFAULT_RENDER_FACTOR", "EDGE_EPS", "IMAGING_KINDS", "Imaging", "SAFETY", "SAMPLE_JITTER", "SURFEL_OVERLAP",
-           "UNCOVERED", "VALUE_EPS", "auto_border", "block_mean64", "make_imaging", "reduce_frames"]
+__all__ = ["DEFAULT_RENDER_FACTOR", "EDGE_EPS", "IMAGING_KINDS", "Imaging", "SAFETY", "SAMPLE_JITTER", "SUBJECT_STEP", "SURFEL_OVERLAP",
+           "UNCOVERED", "VALUE_EPS", "WINDOW_MARGIN", "auto_border", "block_mean64", "make_imaging", "reduce_frames", "window_subject"]

@@ -78,20 +78,24 @@ class WorkingVolume:
             if lim is not None:
                 text += f", {name} {lim[0]:g} to {lim[1]:g} m"
         if self.window > 0:
-            text += f", window: the nearest {self.window:g} m of it"
+            text += f", window: {self.window:g} m from its subject"
         return text
 
-    def for_frame(self, points: np.ndarray, filled_mask: np.ndarray | None = None) -> "WorkingVolume":
+    def for_frame(self, points: np.ndarray, filled_mask: np.ndarray | None = None,
+                  subject: np.ndarray | None = None) -> "WorkingVolume":
         """The volume of one frame when ``window`` > 0 (else itself): its far face moved to ``z0 + window``,
         ``z0`` the 2nd percentile of the depths of the frame's measured points inside the volume (robust to a
-        few stray points): the nearest object and what is just behind it, e.g. a hand and arm before a room.
-        Chosen once at ``alpha = 0`` from the depth, never from a label."""
+        few stray points) — of those in ``subject`` ((N,) bool, the window's subject: see
+        :func:`.framing.window_subject`) where given: the subject and what is just behind it, e.g. a hand
+        and arm before a room. Chosen once at ``alpha = 0`` from the depth, never from a label."""
         if self.window <= 0:
             return self
         p = np.asarray(points, dtype=np.float64)
         inside = self.contains(p)
         if filled_mask is not None:
             inside &= ~np.asarray(filled_mask, dtype=bool)
+        if subject is not None and (inside & np.asarray(subject, dtype=bool)).any():
+            inside &= np.asarray(subject, dtype=bool)
         if not inside.any():
             return replace(self, window=0.0)
         z0 = float(np.percentile(p[inside, 2], 2.0))

@@ -37,10 +37,12 @@ class FinetuneOptions:
     holdout: float = 0.2              # the last part of each recording, by time, never trained on
     holdout_clips: list[str] | None = None   # instead: the clips (ground truth ``clip``, globs) held out whole
     new_head: bool = False            # a new linear head for the recordings' label set on the model's outputs
-    backbone: str | None = None       # or on this pretrained backbone (efficientnet_lite0; implies new_head)
+    backbone: str | None = None       # or this backbone (efficientnet_lite0, small_cnn; implies new_head)
     input_size: tuple[int, int] | None = None   # new head: (H, W) of its input (default: the model's, else 120x160)
     noise_warmup: int = 0             # epochs over which the noise rises linearly from 0 to sigma
     consistency: float = 0.0          # weight of the consistency term (KL of two noisy copies to their mean)
+    clean_share: float = 0.0          # share of each batch trained without noise (the base classifier on clean frames)
+    augment: bool = False             # random colour gains on the drawn pixels, shifts and scales (see Trainer.augment)
     views: int = 4                    # renders at random motions within the radii, per frame (besides alpha = 0)
     stride: int = 1                   # use every stride-th input frame
     max_frames: int | None = None     # per recording, after the stride
@@ -72,6 +74,8 @@ class FinetuneOptions:
     def learning_rate(self) -> float:
         if self.lr is not None:
             return float(self.lr)
+        if self.backbone == "small_cnn":
+            return 3e-3    # from scratch, batch norm: measured on the gestures (docs/real_task.md)
         if self.fresh_head:
             return 1e-4    # gestures, EfficientNet-Lite0: 1e-3 stayed at chance (loss 2.31 after 4 epochs), 1e-4 learns
         return 5e-5 if self.mode == "classifier" else 1e-4
@@ -109,6 +113,8 @@ class FinetuneOptions:
         require(not self.fresh_head or self.mode == "classifier", "a new head is trained with --mode classifier")
         require(not self.fresh_head or self.use_truth, "a new head learns from the labels: drop --no-truth")
         require(math.isfinite(self.consistency) and self.consistency >= 0, f"--consistency must be >= 0, got {self.consistency:g}")
+        require(math.isfinite(self.clean_share) and 0.0 <= self.clean_share < 1.0,
+                f"--clean-share must lie in [0, 1), got {self.clean_share:g}")
         require(self.noise_warmup >= 0, f"--noise-warmup must be >= 0 epochs, got {self.noise_warmup}")
         require(self.holdout_clips is None or len(self.holdout_clips) > 0, "--holdout-clips needs at least one clip pattern")
         require(self.init_denoiser is None or self.mode == "denoiser", "--init-denoiser needs --mode denoiser")

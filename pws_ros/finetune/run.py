@@ -124,7 +124,7 @@ class FinetuneRun:
                  "topics": dict(sorted(o.topics.items())), "sync": [c.sync_tolerance_s, c.sync_max_skew_s],
                  "input_mode": c.input_mode, "source": self.source, "use_truth": o.use_truth, "fresh_head": o.fresh_head}
         train = {"cache": _key(cache), "sigma": sigma, "mode": o.mode, "targets": o.targets, "use_truth": o.use_truth,
-                 "holdout": o.holdout, "holdout_clips": o.holdout_clips, "consistency": o.consistency, "noise_warmup": o.noise_warmup, "epochs": o.epochs, "batch_size": o.batch_size, "lr": o.learning_rate,
+                 "holdout": o.holdout, "holdout_clips": o.holdout_clips, "consistency": o.consistency, "noise_warmup": o.noise_warmup, "clean_share": o.clean_share, "augment": o.augment, "epochs": o.epochs, "batch_size": o.batch_size, "lr": o.learning_rate,
                  "weight_decay": o.weight_decay, "mse_weight": o.mse_weight if o.mode == "denoiser" else None,
                  "denoiser": [o.denoiser_channels, o.denoiser_depth, str(o.init_denoiser or "")] if o.mode == "denoiser" else None}
         return {"cache": cache, "train": train}, _key(cache), _key(train)
@@ -251,7 +251,8 @@ class FinetuneRun:
         data = TrainSet(caches, train_split, o.use_truth)
         trainer = Trainer(student, data, sigma=sigma, epochs=o.epochs, batch_size=o.batch_size, lr=o.learning_rate,
                           weight_decay=o.weight_decay, targets=o.targets, mse_weight=o.mse_weight, seed=o.seed, device=device,
-                          consistency=o.consistency, noise_warmup=o.noise_warmup)
+                          consistency=o.consistency, noise_warmup=o.noise_warmup, clean_share=o.clean_share,
+                          augment=o.augment, background=o.config.background_value)
         ckpt_path = work / CHECKPOINT
         elapsed_before = 0.0
         if o.resume:
@@ -265,9 +266,12 @@ class FinetuneRun:
         truth_frames = sum(1 for c, s in zip(caches, train_split) for k in s if c.frames[k]["truth_label"] >= 0) if o.use_truth else 0
         self.log("info", f"training the {o.mode} ({student.num_params()} parameters) on {device}: {trainer.total} steps "
                          f"({o.epochs} epochs x {trainer.steps_per_epoch}) of {o.batch_size} noisy images at sigma {sigma:g}, "
-                         f"targets: " + (f"ground truth on {truth_frames} frame(s), " if truth_frames else "")
-                         + ("" if o.fresh_head else f"the teacher's {'probabilities' if o.targets == 'soft' else 'top class'}")
-                         + (f", consistency weight {o.consistency:g}" if o.consistency > 0 else ""))
+                         f"targets: " + ", ".join(([f"ground truth on {truth_frames} frame(s)"] if truth_frames else [])
+                                                  + ([] if o.fresh_head else
+                                                     [f"the teacher's {'probabilities' if o.targets == 'soft' else 'top class'}"]))
+                         + (f", consistency weight {o.consistency:g}" if o.consistency > 0 else "")
+                         + (f", {o.clean_share:.0%} of each batch clean" if o.clean_share > 0 else "")
+                         + (", augmented (colour gains, shifts, scales)" if o.augment else ""))
         t_train = time.perf_counter()
         bar = self.progress(trainer.total, "training", "steps")
         bar.update(trainer.step)
@@ -346,7 +350,7 @@ class FinetuneRun:
                  "views_per_frame": o.views, "axes": list(o.config.axes), "radii": o.config.radii, "imaging": o.config.imaging,
                  "render_factor": o.config.render_factor, "holdout": o.holdout, "holdout_clips": o.holdout_clips,
                  "working_volume": None if o.config.working_volume is None else o.config.working_volume.to_dict(),
-                 "consistency": o.consistency, "stride": o.stride, "targets": o.targets,
+                 "consistency": o.consistency, "clean_share": o.clean_share, "augment": o.augment, "stride": o.stride, "targets": o.targets,
                  "ground_truth_used": o.use_truth, "epochs": o.epochs, "steps": trainer.total, "batch_size": o.batch_size,
                  "lr": o.learning_rate, "seed": o.seed, "report": o.report_path().name}
         info["finetune"] = tuned
@@ -411,7 +415,8 @@ class FinetuneRun:
                        "working_volume": None if o.config.working_volume is None else o.config.working_volume.to_dict()},
             "training": {"steps": trainer.total, "epochs": o.epochs, "batch_size": o.batch_size, "lr": o.learning_rate,
                          "targets": "labels" if o.fresh_head else o.targets, "ground_truth_used": o.use_truth,
-                         "consistency": o.consistency, "noise_warmup_epochs": o.noise_warmup, "trainable_parameters": student.num_params(),
+                         "consistency": o.consistency, "noise_warmup_epochs": o.noise_warmup, "clean_share": o.clean_share,
+                         "augment": o.augment, "trainable_parameters": student.num_params(),
                          "history": trainer.history, "seed": o.seed, "device": str(device)},
             "seconds": {"frames": round(prep_s, 1), "training": round(train_s, 1), "total": round(total_s, 1)},
             "memory": _peak_memory(),

@@ -23,7 +23,8 @@ from ..core.model import quiet_jit
 from .cache import RecordingCache, derive
 
 CHECKPOINT_FORMAT = "pws_ros-finetune-checkpoint-1"
-_PERM, _NOISE, _STEP, _NOISE2 = 11, 12, 13, 14   # seed tags
+_PERM, _NOISE, _STEP, _NOISE2, _AUG, _CLEAN = 11, 12, 13, 14, 15, 16   # seed tags
+AUG_GAIN, AUG_LEVEL, AUG_SHIFT, AUG_SCALE = 0.4, 0.2, 6.0, 0.15   # --augment: see Trainer.augment
 
 
 def load_script(path: Path, device: torch.device) -> Any:
@@ -158,7 +159,8 @@ class Trainer:
 
     def __init__(self, student: Student, data: TrainSet, *, sigma: float, epochs: int, batch_size: int, lr: float,
                  weight_decay: float, targets: str, mse_weight: float, seed: int, device: torch.device,
-                 consistency: float = 0.0, noise_warmup: int = 0):
+                 consistency: float = 0.0, noise_warmup: int = 0, clean_share: float = 0.0, augment: bool = False,
+                 background: float = 0.5):
         self.student = student
         self.data = data
         self.sigma = float(sigma)
@@ -170,6 +172,9 @@ class Trainer:
         self.mse_weight = float(mse_weight)
         self.consistency = float(consistency)
         self.warm_steps = int(noise_warmup) * self.steps_per_epoch   # sigma rises linearly from 0 over these steps
+        self.clean_share = float(clean_share)
+        self.augment_on = bool(augment)
+        self.background = float(background)
         self.seed = int(seed)
         self.device = device
         self.opt = torch.optim.AdamW(student.params, lr=self.base_lr, weight_decay=float(weight_decay))
@@ -213,6 +218,29 @@ class Trainer:
         target = torch.where(has, truth, tops)
         return loss, (logits.argmax(dim=1) == target)
 
+    def augment(self, x: torch.Tensor, g: torch.Generator) -> torch.Tensor:
+        """``--augment``, per image (draws from ``g``): the drawn pixels (those not equal to the background in
+        every channel, to the cache's 1/255) times a gain uniform in 1 +- AUG_GAIN per channel and 1 +- AUG_LEVEL
+        overall, clipped to [0, 1]; then the image scaled by 1 +- AUG_SCALE about its centre and shifted by up to
+        AUG_SHIFT input pixels each way (bilinear; what comes in from outside is the background)."""
+        b, _, h, w = x.shape
+        dev = x.device
+
+        def u(*shape: int) -> torch.Tensor:
+            return torch.rand(shape, generator=g, device=dev, dtype=x.dtype) * 2 - 1
+
+        drawn = ((x - round(self.background * 255) / 255).abs() > 0.5 / 255).any(dim=1, keepdim=True)
+        gain = (1 + AUG_GAIN * u(b, 3, 1, 1)) * (1 + AUG_LEVEL * u(b, 1, 1, 1))
+        x = torch.where(drawn, (x * gain).clamp(0, 1), x)
+        theta = torch.zeros(b, 2, 3, device=dev, dtype=x.dtype)
+        scale = 1 + AUG_SCALE * u(b)
+        theta[:, 0, 0] = scale
+        theta[:, 1, 1] = scale
+        theta[:, 0, 2] = AUG_SHIFT * 2 / w * u(b)
+        theta[:, 1, 2] = AUG_SHIFT * 2 / h * u(b)
+        grid = F.affine_grid(theta, list(x.shape), align_corners=False)
+        return F.grid_sample(x - self.background, grid, align_corners=False, padding_mode="zeros") + self.background
+
     def one_step(self) -> float:
         s = self.step
         for group in self.opt.param_groups:
@@ -222,11 +250,18 @@ class Trainer:
         x, probs, tops, truth = x.to(dev), probs.to(dev), tops.to(dev), truth.to(dev)
         g = torch.Generator(device=dev).manual_seed(derive(self.seed, _NOISE, s))
         sigma = self.sigma * (min(1.0, (s + 1) / self.warm_steps) if self.warm_steps > 0 else 1.0)
-        noise = torch.randn(x.shape, generator=g, device=dev, dtype=x.dtype) * sigma
+        if self.augment_on:
+            x = self.augment(x, torch.Generator(device=dev).manual_seed(derive(self.seed, _AUG, s)))
+        scale: torch.Tensor | float = sigma
+        if self.clean_share > 0:   # these images without noise: the base classifier learns the clean frames too
+            gc = torch.Generator(device=dev).manual_seed(derive(self.seed, _CLEAN, s))
+            clean = torch.rand((len(x), 1, 1, 1), generator=gc, device=dev, dtype=x.dtype) < self.clean_share
+            scale = sigma * (~clean).to(x.dtype)
+        noise = torch.randn(x.shape, generator=g, device=dev, dtype=x.dtype) * scale
         noise2 = None
         if self.consistency > 0:
             g2 = torch.Generator(device=dev).manual_seed(derive(self.seed, _NOISE2, s))
-            noise2 = torch.randn(x.shape, generator=g2, device=dev, dtype=x.dtype) * sigma
+            noise2 = torch.randn(x.shape, generator=g2, device=dev, dtype=x.dtype) * scale
         torch.manual_seed(derive(self.seed, _STEP, s))   # dropout and any other draw inside the model
         self.student.train()
         loss, agree = self.loss(x, probs, tops, truth, noise, noise2)
@@ -278,5 +313,5 @@ def load_checkpoint(path: Path, key: str, device: torch.device) -> dict | None:
     return state
 
 
-__all__ = ["DenoisedClassifier", "Student", "TrainSet", "Trainer", "atomic_save", "load_checkpoint", "load_script", "lr_at",
+__all__ = ["AUG_GAIN", "AUG_LEVEL", "AUG_SCALE", "AUG_SHIFT", "DenoisedClassifier", "Student", "TrainSet", "Trainer", "atomic_save", "load_checkpoint", "load_script", "lr_at",
            "quiet_jit"]
