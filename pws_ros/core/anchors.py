@@ -206,7 +206,7 @@ def best_placement(rule, dist_sq_row: Callable[..., np.ndarray], alphas: np.ndar
         else:
             rows = {}
             idx = rule.place(row, alphas, centre, target_of(k), rows_out=rows, budget=k)
-        predicted, j = best_prefix(rows, idx, alphas, centre, target_of)
+        predicted, j = best_prefix(rule, rows, idx, alphas, centre, target_of)
         if best is None or predicted > best[0]:
             best = (predicted, idx[:j], {int(a): rows[int(a)] for a in idx[:j]}, k)
         if len(idx) >= k:
@@ -214,18 +214,16 @@ def best_placement(rule, dist_sq_row: Callable[..., np.ndarray], alphas: np.ndar
     return best
 
 
-def best_prefix(rows: dict, idx, alphas: np.ndarray, centre: int, target_of: Callable[[int], float]) -> tuple[float, int]:
+def best_prefix(rule, rows: dict, idx, alphas: np.ndarray, centre: int, target_of: Callable[[int], float]) -> tuple[float, int]:
     """``(reach, j)``: the first ``j`` anchors of the placement ``idx`` (in the order placed) with the largest
-    covered radius at ``target_of(j)`` (the most of equal reach)."""
-    from .coverage import covered_radius
-
+    covered radius at ``target_of(j)`` (``rule.radius``, the coverage rule's; the most of equal reach)."""
     D2 = np.stack([rows[int(a)] for a in idx])
     best = (0.0, 1)
     for j in range(1, len(idx) + 1):
         t = float(target_of(j))
         if t <= 0:
             continue
-        r = covered_radius(np.any(D2[:j] < t * t, axis=0), alphas, centre)
+        r = float(rule.radius(np.full(j, t), D2[:j], alphas, centre)[0])
         if r >= best[0]:
             best = (r, j)
     return best

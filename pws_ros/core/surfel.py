@@ -142,7 +142,7 @@ class SurfelRenderer:
             a = alphas[s:s + UNION_POSES]
             union = sweep.union(float(a.min()), float(a.max()))
             out.append(first_covers(union, lambda sub: boxes_at(a, sub), len(a), 0.0, 0.0, self.rank, self.samples,
-                                    policy=self._policy))
+                                    covered_pairs, policy=self._policy))
         return self.by_rank[torch.cat(out)].view(B, H, W)
 
     def _sweep_for(self, alphas: torch.Tensor):

@@ -26,7 +26,7 @@ from .cloud import Cloud
 from .errors import require
 from .framing import EDGE_EPS, SAFETY, VALUE_EPS, Imaging, block_mean64
 from .partition import validate_grid
-from .surfel import FootprintSweep, SurfelRenderer
+from .surfel import FootprintSweep, SurfelRenderer, covered_pairs
 from .surfel_cover import UnionPolicy, first_covers
 
 
@@ -224,7 +224,7 @@ class _HullSweep(FootprintSweep):
         # candidates are the possibly covering surfels up to it (.surfel_cover.first_covers: that one alone
         # where nothing else can be, decided once for the batch from where the footprints can be over it)
         sure_first, q, cp = first_covers(self.union(float(g[0]), float(g[-1])), lambda sub: _segment_boxes(*self.ranges(g, sub), H, W),
-                                         B, EDGE_EPS, -EDGE_EPS, r.rank, r.samples, candidates=True, policy=self.policy)
+                                         B, EDGE_EPS, -EDGE_EPS, r.rank, r.samples, covered_pairs, candidates=True, policy=self.policy)
         sure_first = sure_first.view(-1)
         HW = H * W
         dev = r.device

@@ -100,11 +100,12 @@ def union_of(u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi):
     return outer, maybe, inner, sure
 
 
-def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: torch.Tensor, samples,
+def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: torch.Tensor, samples, pairs,
                  candidates: bool = False, policy: UnionPolicy | None = None):
     """``first`` (B, H*W) long: per element ``b`` and native pixel the least ``rank`` of the surfels whose
     inner box holds the pixel's sample point among those whose outer box does, ``P`` where none, exactly as
-    :func:`.surfel.covered_pairs` with ``inner`` tests them (:func:`reference_first_covers`).
+    :func:`.surfel.covered_pairs` with ``inner`` tests them (:func:`reference_first_covers`); ``pairs``: that
+    function (passed in by its module, which imports this one).
 
     ``element_boxes(subset)`` gives the boxes of the surfels ``subset`` (a sorted index tensor, None: all)
     at every element: ``(outer, omask, inner, imask)``, ``outer = (u0, u1, v0, v1)`` each (B, U), the inner box
@@ -115,13 +116,11 @@ def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: to
     rounding (:func:`widen`). ``policy``: see :class:`UnionPolicy`. With ``candidates``, also ``(where, point)`` of every outer pair of rank at
     most ``first`` at the pixels and elements where that may be more than the ``first`` surfel itself
     (``where = b * H * W + pixel``); everywhere else the ``first`` surfel (if any) is the only one."""
-    from .surfel import covered_pairs
-
     direct = policy is not None and policy.skip > 0
     if direct:
         policy.skip -= 1
     if direct or not range_implied(samples):
-        first, where, point = reference_first_covers(*element_boxes(None), eps, ieps, rank, samples)
+        first, where, point = reference_first_covers(*element_boxes(None), eps, ieps, rank, samples, pairs)
         return (first, where, point) if candidates else first
     HW = samples.H * samples.W
     (U, umask, I, imask_u), P = union, len(rank)
@@ -131,10 +130,10 @@ def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: to
         # SURFEL_OVERLAP px; the median surfel): past MOTION_LIMIT most pixels change, so enumerate directly
         move = torch.maximum(U[1] - U[0], U[3] - U[2])[umask & imask_u]
         if len(move) and float(move.median()) - (1.0 + 2 * SURFEL_OVERLAP) > MOTION_LIMIT:
-            first, where, point = reference_first_covers(*element_boxes(None), eps, ieps, rank, samples)
+            first, where, point = reference_first_covers(*element_boxes(None), eps, ieps, rank, samples, pairs)
             return (first, where, point) if candidates else first
     # 1. the union: per pixel the first pair in occlusion order, and the first surely covering throughout
-    pt, pix, ins = covered_pairs(*(x[None] for x in U), umask[None], samples, eps, inner=(*(x[None] for x in I), imask_u[None], ieps))
+    pt, pix, ins = pairs(*(x[None] for x in U), umask[None], samples, eps, inner=(*(x[None] for x in I), imask_u[None], ieps))
     rk = rank[pt]
     r_first = torch.full((HW,), P, dtype=torch.long, device=dev).scatter_reduce_(0, pix, rk, "amin", include_self=True)
     s_first = torch.full((HW,), P, dtype=torch.long, device=dev).scatter_reduce_(0, pix[ins], rk[ins], "amin",
@@ -148,7 +147,7 @@ def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: to
         # element by element costs more than enumerating every element's pairs
         if policy is not None:
             policy.skip = policy.RETRY_AFTER
-        first, where, point = reference_first_covers(*element_boxes(None), eps, ieps, rank, samples)
+        first, where, point = reference_first_covers(*element_boxes(None), eps, ieps, rank, samples, pairs)
         return (first, where, point) if candidates else first
     where_out, point_out = [], []
     if len(pt):
@@ -177,15 +176,13 @@ def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: to
     return first, (torch.cat(where_out) if where_out else empty), (torch.cat(point_out) if point_out else empty)
 
 
-def reference_first_covers(outer, omask, inner, imask, eps: float, ieps: float, rank: torch.Tensor, samples):
+def reference_first_covers(outer, omask, inner, imask, eps: float, ieps: float, rank: torch.Tensor, samples, pairs):
     """:func:`first_covers` by enumerating every element's pairs (:func:`.surfel.covered_pairs`), what the
     renderer and the bounds did before it (boxes (B, P) as ``element_boxes`` gives them): ``first`` and
     every candidate pair ``(where, point)``."""
-    from .surfel import covered_pairs
-
     B, P = outer[0].shape
     HW = samples.H * samples.W
-    cp, q, is_sure = covered_pairs(*outer, omask, samples, eps, inner=(*inner, imask, ieps))
+    cp, q, is_sure = pairs(*outer, omask, samples, eps, inner=(*inner, imask, ieps))
     first = torch.full((B * HW,), P, dtype=torch.long, device=rank.device)
     first.scatter_reduce_(0, q[is_sure], rank[cp[is_sure]], reduce="amin", include_self=True)
     keep = rank[cp] <= first[q]
