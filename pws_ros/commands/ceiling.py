@@ -51,7 +51,8 @@ def register(subparsers) -> None:
     c.add_argument("--radius", default=None, help="requested radius per axis, e.g. tz=0.01,ry=0.25deg")
     for name, kind, text in (("--sigma", float, "pixel noise sigma"), ("--n0", int, "selection samples"),
                              ("--n", int, "estimation samples per anchor"), ("--alpha", float, "risk of a frame"),
-                             ("--anchors", int, "most anchors per axis"), ("--render-factor", int, "surfel render factor"),
+                             ("--n-first", int, "samples of the anchors' joint first look (0: n per anchor at alpha / K)"),
+                             ("--anchors", int, "estimation budget per axis in anchors of n samples"), ("--render-factor", int, "surfel render factor"),
                              ("--seed", int, "random seed"), ("--batch-size", int, "images per classifier call")):
         c.add_argument(name, type=kind, default=None, help=f"{text} (default: config)")
     add_volume_config_args(c)
