@@ -132,7 +132,7 @@ def test_an_abstaining_centre_stops_the_axis_early():
     K = 10
     s = _Streams([0.4] + [0.99] * (K - 1), rng, shared=False, total=8192)
     est = estimate(s, K, single(6144), 0.01, go_on=lambda p: np.ones(K, bool), budget=6144, chunk=256)
-    assert est.p_lower[0] <= 0.5 and np.all(est.samples[1:] == 0) and s.calls <= 512
+    assert est.p_lower[0] <= 0.5 and np.all(est.samples[1:] == 0) and s.calls <= 512 and est.futile
 
 
 def test_demo_fewer_calls_same_or_larger_radius():

@@ -738,5 +738,9 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     t_stats += time.perf_counter() - t1
     timings = dict(timings)
     timings.update(render=t_render, inference=sc.inference_seconds, statistics=t_stats)
-    return _conclude(plan, centre, reach, {centre: 0}, p_lower, R, label, model, config,
+    cert = _conclude(plan, centre, reach, {centre: 0}, p_lower, R, label, model, config,
                      method, sc, bounds, timings, t_start, frames_rendered=N, n_est=int(used.max()) if K else 0)
+    if est.futile:
+        cert.reason = (f"stopped early at the original pose: {int(est.votes[0])} of {int(used[0])} noise samples for the "
+                       f"label, too few for a p_A bound above 0.5 even at all {looks.last} (futility stop; no bound claimed)")
+    return cert

@@ -113,10 +113,11 @@ class Estimate:
     votes: np.ndarray
     joint_votes: int = -1          # -1: no joint look
     joint_lower: float = 0.0
+    futile: bool = False           # the centre stopped for futility (its bound not computed: 0)
 
     def to_dict(self) -> dict:
         return {"anchor_samples": [int(x) for x in self.samples], "anchor_votes": [int(x) for x in self.votes],
-                "joint_votes": int(self.joint_votes), "joint_lower": float(self.joint_lower)}
+                "joint_votes": int(self.joint_votes), "joint_lower": float(self.joint_lower), "futile": bool(self.futile)}
 
 
 def estimate(votes_of: Callable[[np.ndarray, int], np.ndarray], K: int, looks: Looks, alpha: float,
@@ -155,6 +156,7 @@ def estimate(votes_of: Callable[[np.ndarray, int], np.ndarray], K: int, looks: L
                 k[0] += int(np.asarray(votes_of(np.array([0]), m), bool).sum())
                 used[0] += m
                 if used[0] < size and futile(int(k[0]), int(used[0]), looks.last, last_level):
+                    out.futile = True
                     return out
             p[0] = max(p[0], float(looks.lower(int(k[0]), look, alpha, K)))
             if p[0] > 0.5 or futile(int(k[0]), int(used[0]), looks.last, last_level):
