@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import torch
@@ -105,6 +105,12 @@ def bonferroni(alpha: float, m: int) -> float:
     require(isinstance(m, (int, np.integer)) and not isinstance(m, bool) and int(m) >= 1,
             f"the number of bounds m must be an integer >= 1, got {m!r}")
     return float(alpha) / int(m)
+
+
+def _check_num(num: Any) -> int:
+    require(isinstance(num, (int, np.integer)) and not isinstance(num, bool) and int(num) >= 1,
+            f"the number of noise samples must be an integer >= 1, got {num!r}")
+    return int(num)
 
 
 def _check_sigma(sigma: Any) -> float:
@@ -221,9 +227,7 @@ class SmoothedClassifier:
         bound holds; a Bonferroni union bound over the frames needs no independence between them. The
         noise, the costliest part after the classifier on a CPU, is then drawn once instead of B times.
         """
-        require(isinstance(num, (int, np.integer)) and not isinstance(num, bool) and int(num) >= 1,
-                f"the number of noise samples must be an integer >= 1, got {num!r}")
-        num = int(num)
+        num = _check_num(num)
         frames = _frames_tensor(frames)
         self._check_size(frames)
         B, H, W, _ = frames.shape
@@ -279,13 +283,12 @@ class SmoothedClassifier:
         require(C >= 1, f"model {getattr(self.model, 'path', '')} has no known number of classes")
         return torch.zeros((B, C), dtype=torch.long, device=self.device)
 
-    def _common_counts(self, chw: torch.Tensor, num: int, progress: Callable[[int, int], None] | None) -> torch.Tensor:
-        """:meth:`sample_counts` with ``common_noise``: one noise batch serves every frame in turn."""
+    def _common_predictions(self, chw: torch.Tensor, num: int) -> Iterator[tuple[int, int, int, torch.Tensor]]:
+        """``(start, b, k, pred)``: the predictions of samples ``start .. start + b - 1`` of frame ``k``, one
+        noise batch serving every frame in turn (common random numbers); time counted in ``inference_seconds``."""
         B, _, H, W = chw.shape
-        counts: torch.Tensor | None = None
         t0 = time.perf_counter()
         try:
-            done = 0
             buffer = self._noise_buffer(min(num, self.batch_size), H, W)
             out = torch.empty_like(buffer)
             for start in range(0, num, self.batch_size):
@@ -294,18 +297,25 @@ class SmoothedClassifier:
                 x = out[:b]
                 for k in range(B):
                     torch.add(noise, chw[k].to(self.device), out=x)
-                    pred = self._classify(x, use_denoiser=True)
-                    if counts is None:
-                        counts = self._zero_counts(B)
-                    C = counts.shape[1]
-                    require(int(pred.max()) < C, f"model output has more than the {C} classes it declares")
-                    counts[k] += torch.bincount(pred, minlength=C)
-                    done += b
-                    if progress is not None:
-                        progress(done, B * num)
+                    yield start, b, k, self._classify(x, use_denoiser=True)
             _sync(self.device)
         finally:
             self.inference_seconds += time.perf_counter() - t0
+
+    def _common_counts(self, chw: torch.Tensor, num: int, progress: Callable[[int, int], None] | None) -> torch.Tensor:
+        """:meth:`sample_counts` with ``common_noise``: one noise batch serves every frame in turn."""
+        B = chw.shape[0]
+        counts: torch.Tensor | None = None
+        done = 0
+        for _, b, k, pred in self._common_predictions(chw, num):
+            if counts is None:
+                counts = self._zero_counts(B)
+            C = counts.shape[1]
+            require(int(pred.max()) < C, f"model output has more than the {C} classes it declares")
+            counts[k] += torch.bincount(pred, minlength=C)
+            done += b
+            if progress is not None:
+                progress(done, B * num)
         assert counts is not None
         return counts.cpu()
 
@@ -314,28 +324,12 @@ class SmoothedClassifier:
         the frames sharing their noise draws (sample ``j`` of every frame adds the same noise image), drawn as
         :meth:`sample_counts` with ``common_noise`` draws them. Column ``j`` thus tells whether every frame
         kept the label under one noise draw: the joint vote of :mod:`.sequential`."""
-        require(isinstance(num, (int, np.integer)) and not isinstance(num, bool) and int(num) >= 1,
-                f"the number of noise samples must be an integer >= 1, got {num!r}")
-        num = int(num)
+        num = _check_num(num)
         frames = _frames_tensor(frames)
         self._check_size(frames)
-        B, H, W, _ = frames.shape
-        chw = frames.permute(0, 3, 1, 2)
-        votes = torch.zeros((B, num), dtype=torch.bool)
-        t0 = time.perf_counter()
-        try:
-            buffer = self._noise_buffer(min(num, self.batch_size), H, W)
-            out = torch.empty_like(buffer)
-            for start in range(0, num, self.batch_size):
-                b = min(self.batch_size, num - start)
-                noise = self._draw(buffer[:b]).mul_(self.sigma)
-                x = out[:b]
-                for k in range(B):
-                    torch.add(noise, chw[k].to(self.device), out=x)
-                    votes[k, start:start + b] = (self._classify(x, use_denoiser=True) == int(label)).cpu()
-            _sync(self.device)
-        finally:
-            self.inference_seconds += time.perf_counter() - t0
+        votes = torch.zeros((frames.shape[0], num), dtype=torch.bool)
+        for start, b, k, pred in self._common_predictions(frames.permute(0, 3, 1, 2), num):
+            votes[k, start:start + b] = (pred == int(label)).cpu()
         return votes
 
     def predict(self, frames: Any, *, use_denoiser: bool = False) -> torch.Tensor:
