@@ -52,7 +52,6 @@ SAFETY = 0.85          # the work of an axis is sized for this fraction of its s
 EMA_WEIGHT = 0.3       # weight of the newest observation in the cost model's moving averages
 MIN_POINTS = 3         # the smallest grid: -b, 0, +b
 MIN_N0 = 8             # the fewest selection samples a budget leaves (n0 only picks the label and plans the anchors)
-FRONTIER_POINTS = 2 * FRONTIER_ROUNDS * (FRONTIER_PARTS - 1)   # points the frontier refinement may add to a grid
 WARMUP_POINTS = 9      # grid points of the geometry warm-up on the first frame
 
 
@@ -309,5 +308,5 @@ def measure_per_image(model: Any, shape: tuple[int, int], batch_sizes: tuple[int
     return out
 
 
-__all__ = ["CostModel", "EMA_WEIGHT", "FRONTIER_POINTS", "Level", "MIN_N0", "MIN_POINTS", "SAFETY", "Sizes", "WARMUP_POINTS",
+__all__ = ["CostModel", "EMA_WEIGHT", "Level", "MIN_N0", "MIN_POINTS", "SAFETY", "Sizes", "WARMUP_POINTS",
            "answer_n", "frontier_points", "levels", "measure_inference", "measure_per_image", "size_axis", "size_work"]

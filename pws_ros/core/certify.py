@@ -487,21 +487,8 @@ def refined_hulls(bounds_of, old_grid: np.ndarray, old, grid: np.ndarray):
     return HullValues(grid, lo, hi, constant, dict(old.details, segments=S))
 
 
-def placement(k0: int, config: CertifyConfig) -> tuple[Callable[[int], Looks], int, Callable[[int], float]]:
-    """``(looks_of, most anchors, target_of)`` of the adaptive anchors after ``k0`` of the ``n0`` selection
-    votes went to the top class (:mod:`.sequential`), fixed before any estimation sample is drawn:
-
-    * where the selection predicts that the anchors will keep the label together (:func:`.sequential.joint_rate`),
-      the joint plan: ``K`` anchors share the estimation budget ``num_anchors * n`` in a joint first look of
-      ``m = num_anchors * n // K`` samples each (at least ``n_first``: up to ``num_anchors * n // n_first``
-      anchors), then, where ``m < n``, an individual look of ``n`` for the anchors it leaves short;
-    * else one individual look of ``n`` samples for at most ``num_anchors`` anchors (``n_first`` 0: always).
-
-    The one with the larger target per sample at the most anchors is chosen. ``looks_of(K)``: the looks of
-    ``K`` anchors; ``target_of(K)``: the Cohen radius the selection predicts for one of them at the first
-    look (:func:`.anchors.target_radius`; a planning value). Fewer anchors get more samples each, hence a
-    larger target: a placement stopped by a segment no grid frame covers at the target of many anchors
-    tries fewer (:func:`.anchors.best_placement`)."""
+def _planned(k0: int, config: CertifyConfig) -> tuple[Callable[[int], Looks], int, Callable[[int], float]]:
+    """The plans of :func:`placement` before its weak-frame fallback."""
     n0, n, sigma, alpha = int(config.n0), int(config.n), float(config.sigma), float(config.alpha)
     budget = int(config.num_anchors) * n
 
@@ -529,10 +516,41 @@ def placement(k0: int, config: CertifyConfig) -> tuple[Callable[[int], Looks], i
     return fixed, int(config.num_anchors), individual
 
 
+def placement(k0: int, config: CertifyConfig) -> tuple[Callable[[int], Looks], int, Callable[[int], float]]:
+    """``(looks_of, most anchors, target_of)`` of the adaptive anchors after ``k0`` of the ``n0`` selection
+    votes went to the top class (:mod:`.sequential`), fixed before any estimation sample is drawn:
+
+    * where the selection predicts that the anchors will keep the label together (:func:`.sequential.joint_rate`),
+      the joint plan: ``K`` anchors share the estimation budget ``num_anchors * n`` in a joint first look of
+      ``m = num_anchors * n // K`` samples each (at least ``n_first``: up to ``num_anchors * n // n_first``
+      anchors), then, where ``m < n``, an individual look of ``n`` for the anchors it leaves short;
+    * else one individual look of ``n`` samples for at most ``num_anchors`` anchors (``n_first`` 0: always).
+
+    The one with the larger target per sample at the most anchors is chosen. ``looks_of(K)``: the looks of
+    ``K`` anchors; ``target_of(K)``: the Cohen radius the selection predicts for one of them at the first
+    look (:func:`.anchors.target_radius`; a planning value). Fewer anchors get more samples each, hence a
+    larger target: a placement stopped by a segment no grid frame covers at the target of many anchors
+    tries fewer (:func:`.anchors.best_placement`).
+
+    Where even that predicts no radius at the most anchors' level (a weak frame), the centre alone (level
+    alpha) gets the whole estimation budget in one look: it may still certify a small radius. Its samples
+    come n at a time and the axis stops as soon as they make a bound above 1/2 all but impossible
+    (:func:`.sequential.futile`)."""
+    looks_of, most, target_of = _planned(k0, config)
+    if target_of(most) > 0 or most <= 1:
+        return looks_of, most, target_of
+    budget = int(config.num_anchors) * int(config.n)
+
+    def centre_alone(k: int) -> float:
+        return target_radius(int(k0), int(config.n0), budget, config.sigma, config.alpha, int(k))
+
+    return (lambda k: single(budget)), 1, centre_alone
+
+
 def largest_target(config: CertifyConfig) -> tuple[float, int]:
     """The target radius of the adaptive anchors when every selection sample votes for one class (the
     largest any selection can give; it needs no classifier), and the most anchors then (:func:`placement`)."""
-    _, most, target_of = placement(int(config.n0), config)
+    _, most, target_of = _planned(int(config.n0), config)
     return target_of(most), most
 
 
@@ -595,25 +613,8 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     label = int(torch.argmax(counts0[0]).item())
     if progress is not None:
         progress(config.n0, total_work)
-    k0 = int(counts0[0, label])
-    looks_of, max_anchors, target_of = placement(k0, config)
+    looks_of, max_anchors, target_of = placement(int(counts0[0, label]), config)
     target = target_of(max_anchors)
-    if target <= 0 < max_anchors - 1:
-        # too weak for the whole budget's Bonferroni level: the centre alone (level alpha), with the whole
-        # estimation budget (num_anchors * n samples), may still certify a small radius, so plan for it
-        # (a planning choice made from the selection samples only: the bound uses the anchors placed and
-        # the sample count fixed here, before any estimation sample is drawn); its samples come n at a time
-        # and the axis stops as soon as they make a bound above 1/2 all but impossible (.sequential.futile)
-        max_anchors = 1
-
-        def looks_of(k: int) -> Looks:
-            return single(budget_samples)
-
-        def target_of(k: int) -> float:
-            return target_radius(k0, int(config.n0), budget_samples, config.sigma, config.alpha, k)
-
-        target = target_of(1)
-
     t0 = time.perf_counter()
     if target > 0:
         plan, frames = geometry.refine(plan, frames, target, max_anchors, share=FIRST_ROUND_SHARE)
