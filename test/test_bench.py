@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -311,3 +312,27 @@ def test_peak_memory_sees_an_allocation():
         buf.close()
     assert mem.peak_bytes is not None, "no resident-set size (/proc/self/statm) on this Linux machine"
     assert mem.peak_bytes >= 30 * 2**20
+
+
+def test_gpu_bench_compares_certificates_across_devices_and_times_a_frame(tmp_path):
+    """pws_ros.bench.gpu: the cpu/cuda comparison names every certificate that differs (status or radius),
+    counts the rest as identical, and a CPU run of the geometry case on the demo gives one timed row per
+    axis whose stages add up to no more than its total (no CUDA needed)."""
+    from pws_ros.bench import gpu
+    from pws_ros.bridge.config import PwsConfig
+    from pws_ros.replay import ReplayOptions
+
+    def row(frame, axis, device, share, status="certified"):
+        return {"case": "c", "device": device, "frame": frame, "axis": axis, "share": share, "status": status}
+
+    rows = [row(0, "tz", "cpu", 1.0), row(0, "tz", "cuda", 1.0), row(0, "ry", "cpu", 0.5), row(0, "ry", "cuda", 0.25),
+            row(1, "tz", "cpu", 0.0, "abstain"), row(1, "tz", "cuda", 0.0, "not_certified"), row(1, "ry", "cpu", 1.0)]
+    lines = gpu._compare(rows, "c")
+    assert lines[0] == "c: 1 certificates identical on cpu and cuda, 2 differ"
+    assert lines[1:] == ["  frame 0 ry: cpu 0.5 cuda 0.25", "  frame 1 tz: cpu 0.0 cuda 0.0"]
+    demo = Path(__file__).resolve().parents[1] / "bags" / "demo"
+    got = gpu._run("geometry demo", "cpu", ReplayOptions(bag=demo, config=PwsConfig(axes=("tz", "ry"))), size=(60, 80), frames=1)
+    assert [r["axis"] for r in got] == ["tz", "ry"] and all(r["device"] == "cpu" and r["frame"] == 0 for r in got)
+    for r in got:
+        assert sum(r[k] for k in ("plan", "render", "bounds", "inference", "statistics")) <= r["total"] + 1e-3
+        assert 0.0 <= r["share"] <= 1.0 and r["calls"] > 0
