@@ -97,7 +97,7 @@ def register(subparsers) -> None:
                         "too (default 0: every image noisy)")
     h.add_argument("--augment", action="store_true",
                    help="random colour gains (x0.6-1.4 per channel, x0.8-1.2 overall) on the drawn pixels (not the "
-                        "background), shifts of up to 6 input pixels and scales of x0.85-1.15 about the centre, per image")
+                        "background), shifts of up to 12 input pixels and scales of x0.6-1.4 about the centre, per image")
 
     t = p.add_argument_group("training")
     t.add_argument("--mode", choices=MODES, default=DEFAULT_MODE,

@@ -24,7 +24,7 @@ from .cache import RecordingCache, derive
 
 CHECKPOINT_FORMAT = "pws_ros-finetune-checkpoint-1"
 _PERM, _NOISE, _STEP, _NOISE2, _AUG, _CLEAN = 11, 12, 13, 14, 15, 16   # seed tags
-AUG_GAIN, AUG_LEVEL, AUG_SHIFT, AUG_SCALE = 0.4, 0.2, 6.0, 0.15   # --augment: see Trainer.augment
+AUG_GAIN, AUG_LEVEL, AUG_SHIFT, AUG_SCALE = 0.4, 0.2, 12.0, 0.4   # --augment: see Trainer.augment (shift, scale: docs/real_task.md setting 15)
 
 
 def load_script(path: Path, device: torch.device) -> Any:
