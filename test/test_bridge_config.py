@@ -107,6 +107,20 @@ def test_node_sections_override_wildcards(tmp_path):
     assert C.load_config(p, "pipeline", overrides={"n": 8}).n == 8
 
 
+def test_a_file_whose_sections_all_name_other_nodes_is_refused(tmp_path):
+    """A parameter file with sections for other nodes only (a misnamed section, e.g. 'pws:') would configure
+    nothing: refused, naming the sections and the valid names; one section of ours among others is fine."""
+    p = tmp_path / "p.yaml"
+    p.write_text(yaml.safe_dump({"pws": {"ros__parameters": {"time_budget_s": 10.0}},
+                                 "/robot/camera_driver": {"ros__parameters": {"fps": 30}}}))
+    with pytest.raises(PwsError, match=r"no section applies to pws_ros \(sections: /robot/camera_driver, pws\).*'/\*\*'.*pipeline"):
+        C.load_config(p, "pipeline")
+    p.write_text(yaml.safe_dump({"/robot/camera_driver": {"ros__parameters": {"fps": 30}},
+                                 "/robot/certifier": {"ros__parameters": {"time_budget_s": 10.0}}}))
+    assert C.load_config(p, "certifier").time_budget_s == 10.0
+    assert C.load_config(p, "pipeline").time_budget_s == C.PwsConfig().time_budget_s   # another node's section
+
+
 def test_flat_and_bare_layouts(tmp_path):
     assert C.params_from_yaml_dict({"ros__parameters": {"radius": {"rx": 0.1}}}) == {"radius.rx": 0.1}
     assert C.params_from_yaml_dict({"sigma": 0.3, "radius": {"rz": 0.2}}) == {"sigma": 0.3, "radius.rz": 0.2}
