@@ -97,15 +97,15 @@ def test_certify_command_takes_its_batch_size_from_the_engines_check(tmp_path, c
     """`pws certify` runs the same batch size check as the nodes and `pws replay` (bridge.sizing.choose_batch_size),
     on the size of the frames its classifier gets, and certifies with the batch size it returns."""
     from pws_ros.bridge import sizing
-    from pws_ros.core import certify as core_certify
+    from pws_ros.core import anchored as core_anchored  # the adaptive anchors' path, which `pws certify` takes here
     from pws_ros.sim.world import render_view
 
     v = render_view(0, 0, 32, 24, samples_per_pixel=4.0)
     one = _write_scene(tmp_path, v.one_frame, v.intrinsics, "one")
     asked, used = [], []
     monkeypatch.setattr(sizing, "choose_batch_size", lambda model, shape, bs, sigma, **k: asked.append((tuple(shape), bs)) or (3, 0.0))
-    real = core_certify.SmoothedClassifier
-    monkeypatch.setattr(core_certify, "SmoothedClassifier", lambda *a, **k: used.append(k["batch_size"]) or real(*a, **k))
+    real = core_anchored.SmoothedClassifier
+    monkeypatch.setattr(core_anchored, "SmoothedClassifier", lambda *a, **k: used.append(k["batch_size"]) or real(*a, **k))
     certify = ["certify"] + one[1:-1] + ["--model", str(models["linear"]), "--n0", "8", "--n", "16", "--batch-size", "64", "--quiet"]
     assert cli.main(certify) == 0
     from pws_ros.core.model import load_model

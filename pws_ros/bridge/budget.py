@@ -27,7 +27,7 @@ flagged as over budget with the time it took; lack of time alone is never an ERR
 
 Under reduced sizes the engine also sets ``spread_estimation``: where fewer anchors are placed
 than sized and they fall short of the radius, the ``num_anchors * n`` estimation samples go to the
-anchors there are (:class:`~pws_ros.core.certify.CertifyConfig`), so the sized time is spent. ``n0``
+anchors there are (:class:`~pws_ros.core.certify_common.CertifyConfig`), so the sized time is spent. ``n0``
 only selects the label and plans the anchors: fewer selection samples never make a certificate wrong,
 only its anchors less well placed.
 

@@ -222,7 +222,7 @@ class FrameCertifier:
             cfg = replace(cfg, alpha=self.config.alpha / max(1, len(self.config.axes)),
                           seed=derive_seed(self.config.seed, int(stamp_ns), axis))
         if sizes is not None and sizes.reduced:
-            # a budget that shrank the work: what it sized is spent (core.certify.CertifyConfig.spread_estimation)
+            # a budget that shrank the work: what it sized is spent (core.certify_common.CertifyConfig.spread_estimation)
             cfg = replace(cfg, spread_estimation=True, n0=int(sizes.n0), num_anchors=int(sizes.num_anchors), n=int(sizes.n),
                           max_partitions=int(sizes.max_partitions), min_partitions=min(int(cfg.min_partitions), int(sizes.max_partitions)))
         if sizes is not None:   # a coarser level (budget.Level): its frontier rounds and render factor
@@ -290,7 +290,7 @@ class FrameCertifier:
 
     def anchor_grid(self, cloud: Cloud, imaging: Any, plan: Any, stamp_ns: int = 0) -> Any:
         """The plan the four-process projector renders: with surfel imaging and ``coverage: anchors``
-        refined for the certifier's adaptive anchors (:func:`~pws_ros.core.certify.anchor_grid`, at the
+        refined for the certifier's adaptive anchors (:func:`~pws_ros.core.anchored.anchor_grid`, at the
         axis' own ``alpha``), else ``plan``."""
         from ..core.certify import anchor_grid
 

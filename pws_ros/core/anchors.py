@@ -23,7 +23,7 @@ from .partition import Plan
 from .smoothing import clopper_pearson_lower, cohen_radius
 
 REFINE_FRACTION = 2.0  # grid segments whose end frames differ by more than target / this are subdivided
-REFINE_ROUNDS = 2      # rounds of that subdivision where the anchors of the first fall short (core.certify)
+REFINE_ROUNDS = 2      # rounds of that subdivision where the anchors of the first fall short (core.anchored)
 FIRST_ROUND_SHARE = 0.5  # of the room the grid cap leaves, the first round may take (the rest: the rounds after it)
 TARGET_MARGIN = 0.95   # the target radius is this fraction of the radius the selection samples predict
 SEARCH_WINDOW = 16     # grid frames beyond the first uncovered segment tried as the next anchor

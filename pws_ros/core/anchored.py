@@ -1,0 +1,408 @@
+"""The anchors' path of a certificate (``coverage: anchors``; docs/certificate.md, step 5): the grid
+refined for the target radius the selection samples predict (:func:`refine_for_target`, within
+:func:`grid_cap`; only new segments bounded, :func:`refined_hulls`), the placement of the anchors and its
+plan of looks (:func:`placement`; :func:`largest_target` and :func:`anchor_grid` for the four-process
+planner), and their estimation in looks (:func:`_certify_anchored`). The placement itself is
+:mod:`.anchors`, the looks :mod:`.sequential`; :mod:`.certify` dispatches here and re-exports these names."""
+from __future__ import annotations
+
+import time
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from .anchors import FIRST_ROUND_SHARE, REFINE_FRACTION, REFINE_ROUNDS, best_placement, predicted_target, refine_plan, target_radius
+from .certify_common import CertifyConfig, _conclude, bounds_bytes, segment_bytes
+from .cloud import Cloud
+from .coverage import (FRONTIER_PARTS, FRONTIER_ROUNDS, AdaptiveAnchorsRule, cohen_radii, covered_run, frontier_reach, packing_bound,
+                       segment_covers)
+from .errors import require
+from .imaging import HullValues, Imaging, SurfelRenderer, hulls_within, make_renderer
+from .model import LoadedModel
+from .partition import Plan
+from .result import Certificate
+from .sequential import Looks, estimate, joint_looks, joint_rate, single
+from .smoothing import SmoothedClassifier
+
+
+class _RendererGeometry:
+    """What the adaptive anchors need of the imaging model, from the renderer (pipeline, replay,
+    ``pws certify``): frames of the plan, the plan refined for the target, bounds of any grid inside
+    the plan's range, hence the frontier refinement."""
+
+    def __init__(self, renderer: SurfelRenderer, config: CertifyConfig):
+        self.renderer, self.config = renderer, config
+        self._bounds_of = None
+        self._last = None   # the last grid bounded and its HullValues (a refinement bounds only its new segments)
+
+    def start(self, plan: Plan) -> Plan:
+        """The grid to begin with. A plan already at the grid cap leaves the refinement no room, so every
+        other point is dropped (0 and both ends kept): the refinement puts points back where neighbouring
+        frames differ by more than the target allows. Only the grid's tightness depends on it."""
+        n = len(plan.alphas)
+        if n < max(5, grid_cap(self.renderer.imaging, self.config)):
+            return plan
+        centre = int(np.searchsorted(plan.alphas, 0.0))
+        alphas = plan.alphas[np.union1d(np.arange(centre % 2, n, 2), [0, n - 1])]
+        return Plan(plan.method, plan.axis, plan.radius, float(np.diff(alphas).max()), len(alphas), alphas, plan.unit,
+                    dict(plan.details, thinned_from=n))
+
+    def frames(self, plan: Plan) -> np.ndarray:
+        return self.renderer.render_batch(plan.alphas).cpu().numpy()
+
+    def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
+               keep: tuple[float, float] | None = None, share: float = 1.0) -> tuple[Plan, np.ndarray]:
+        return refine_for_target(self.renderer, plan, frames, target, max_anchors, self.config, keep=keep, share=share)
+
+    def bounds(self, plan: Plan):
+        # one sweep over the plan's range bounds its grid here, the new segments of a refinement of it (the
+        # bounds of a segment depend on its ends only) and, later, the frontier's finer segments
+        g = plan.alphas
+        if self._last is None or (self._last[0][0], self._last[0][-1]) != (g[0], g[-1]):
+            self._bounds_of = hulls_within(self.renderer, float(g[0]), float(g[-1]), max_bytes=bounds_bytes(self.config))
+            self._last = (g, self._bounds_of(g))
+        elif not np.array_equal(self._last[0], g):
+            self._last = (g, refined_hulls(self._bounds_of, *self._last, g))
+        return self._last[1]
+
+    def frontier(self, anchor_frames: np.ndarray, R: np.ndarray, alphas: np.ndarray, covered: np.ndarray,
+                 centre: int) -> tuple[float, list[float]]:
+        return frontier_reach(segment_covers(self._bounds_of, anchor_frames, R), alphas, covered, centre,
+                              rounds=int(self.config.frontier_rounds))
+
+
+class _FixedGeometry:
+    """The same from frames and bounds received for a fixed grid (the four-process certifier; the planner
+    refined the grid for the largest possible target, :func:`anchor_grid`): nothing is refined further,
+    and a covered run that stops inside a segment stops at its grid point (no frontier refinement)."""
+
+    def __init__(self, frames: np.ndarray, hulls):
+        self._frames, self._hulls = frames, hulls
+
+    def frames(self, plan: Plan) -> np.ndarray:
+        return self._frames
+
+    def start(self, plan: Plan) -> Plan:
+        return plan
+
+    def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
+               keep: tuple[float, float] | None = None, share: float = 1.0) -> tuple[Plan, np.ndarray]:
+        return plan, frames
+
+    def bounds(self, plan: Plan):
+        return self._hulls
+
+    frontier = None
+
+
+def grid_cap(imaging: Imaging, config: CertifyConfig) -> int:
+    """The most grid points a refined plan may have: ``max_partitions``, and as many frames and segment
+    bounds as the memory ceiling holds (:func:`.certify_common.bounds_bytes`)."""
+    return min(int(config.max_partitions), int(bounds_bytes(config) // max(1, segment_bytes(imaging))))
+
+
+def refine_for_target(renderer: SurfelRenderer, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
+                      config: CertifyConfig, reserve: int = 0, keep: tuple[float, float] | None = None,
+                      share: float = 1.0) -> tuple[Plan, np.ndarray]:
+    """The plan refined where consecutive frames differ by more than ``target / REFINE_FRACTION``
+    (:func:`.anchors.refine_plan`), and its frames (only the new poses rendered). Anchors cover about 2
+    target radii of rendered path each: no refinement farther than the budget reaches; the refined grid
+    stays within :func:`grid_cap` less ``reserve`` points (never below the plan's own size) and adds at
+    most ``share`` of the room that leaves. One round; :func:`_certify_anchored` asks for more where the
+    anchors fall short."""
+    coarse = plan
+    room = max(0, grid_cap(renderer.imaging, config) - int(reserve) - len(frames))
+    plan = refine_plan(plan, frames, target / REFINE_FRACTION, len(frames) + int(share * room),
+                       reach=(max_anchors + 1) * target, keep=keep)
+    if len(plan.alphas) != len(frames):  # render only the new poses
+        old = np.searchsorted(plan.alphas, coarse.alphas)
+        new = np.setdiff1d(np.arange(len(plan.alphas)), old)
+        full = np.empty((len(plan.alphas),) + frames.shape[1:], dtype=frames.dtype)
+        full[old] = frames
+        full[new] = renderer.render_batch(plan.alphas[new]).cpu().numpy()
+        frames = full
+    return plan, frames
+
+
+def refined_hulls(bounds_of, old_grid: np.ndarray, old, grid: np.ndarray):
+    """The HullValues of ``grid`` from those of ``old_grid`` (``old``): a segment of ``grid`` that is a segment
+    of ``old_grid`` keeps its bounds (they depend on its two ends only); the runs of new segments are bounded
+    by ``bounds_of`` (:func:`.imaging.hulls_within` over the same range)."""
+    S = len(grid) - 1
+    i = np.searchsorted(old_grid, grid[:-1])
+    ok = i < len(old_grid) - 1
+    kept = np.zeros(S, bool)
+    kept[ok] = (old_grid[i[ok]] == grid[:-1][ok]) & (old_grid[i[ok] + 1] == grid[1:][ok])
+    lo = np.empty((S,) + old.lo.shape[1:], old.lo.dtype)
+    hi = np.empty_like(lo)
+    constant = np.empty((S,) + old.constant.shape[1:], bool)
+    lo[kept], hi[kept], constant[kept] = old.lo[i[kept]], old.hi[i[kept]], old.constant[i[kept]]
+    new = np.flatnonzero(~kept)
+    if len(new):
+        starts = new[np.r_[True, np.diff(new) > 1]]
+        ends = new[np.r_[np.diff(new) > 1, True]] + 1
+        for s, e in zip(starts, ends):
+            part = bounds_of(grid[s:e + 1])
+            lo[s:e], hi[s:e], constant[s:e] = part.lo, part.hi, part.constant
+    return HullValues(grid, lo, hi, constant, dict(old.details, segments=S))
+
+
+def _planned(k0: int, config: CertifyConfig) -> tuple[Callable[[int], Looks], int, Callable[[int], float]]:
+    """The plans of :func:`placement` before its weak-frame fallback."""
+    n0, n, sigma, alpha = int(config.n0), int(config.n), float(config.sigma), float(config.alpha)
+    budget = int(config.num_anchors) * n
+
+    def individual(k: int) -> float:
+        return target_radius(int(k0), n0, n, sigma, alpha, int(k))
+
+    def fixed(k: int) -> Looks:
+        return single(n)
+
+    if int(config.n_first) <= 0:
+        return fixed, int(config.num_anchors), individual
+    most = max(1, budget // min(int(config.n_first), n))
+
+    def looks_of(k: int) -> Looks:
+        return joint_looks(max(1, budget // max(1, int(k))), n)
+
+    def joint(k: int) -> float:
+        looks = looks_of(k)
+        m = int(looks.sizes[0])
+        return predicted_target(int(np.floor(m * joint_rate(int(k0), n0, int(k)))), m, sigma, looks.level(0, alpha, int(k)))
+
+    m_most = int(looks_of(most).sizes[0])
+    if joint(most) / m_most >= individual(int(config.num_anchors)) / n:
+        return looks_of, most, joint
+    return fixed, int(config.num_anchors), individual
+
+
+def placement(k0: int, config: CertifyConfig) -> tuple[Callable[[int], Looks], int, Callable[[int], float]]:
+    """``(looks_of, most anchors, target_of)`` of the adaptive anchors after ``k0`` of the ``n0`` selection
+    votes went to the top class (:mod:`.sequential`), fixed before any estimation sample is drawn:
+
+    * where the selection predicts that the anchors will keep the label together (:func:`.sequential.joint_rate`),
+      the joint plan: ``K`` anchors share the estimation budget ``num_anchors * n`` in a joint first look of
+      ``m = num_anchors * n // K`` samples each (at least ``n_first``: up to ``num_anchors * n // n_first``
+      anchors), then, where ``m < n``, an individual look of ``n`` for the anchors it leaves short;
+    * else one individual look of ``n`` samples for at most ``num_anchors`` anchors (``n_first`` 0: always).
+
+    The one with the larger target per sample at the most anchors is chosen. ``looks_of(K)``: the looks of
+    ``K`` anchors; ``target_of(K)``: the Cohen radius the selection predicts for one of them at the first
+    look (:func:`.anchors.target_radius`; a planning value). Fewer anchors get more samples each, hence a
+    larger target: a placement stopped by a segment no grid frame covers at the target of many anchors
+    tries fewer (:func:`.anchors.best_placement`).
+
+    Where even that predicts no radius at the most anchors' level (a weak frame), the centre alone (level
+    alpha) gets the whole estimation budget in one look: it may still certify a small radius. Its samples
+    come n at a time and the axis stops as soon as they make a bound above 1/2 all but impossible
+    (:func:`.sequential.futile`)."""
+    looks_of, most, target_of = _planned(k0, config)
+    if target_of(most) > 0 or most <= 1:
+        return looks_of, most, target_of
+    budget = int(config.num_anchors) * int(config.n)
+
+    def centre_alone(k: int) -> float:
+        return target_radius(int(k0), int(config.n0), budget, config.sigma, config.alpha, int(k))
+
+    return (lambda k: single(budget)), 1, centre_alone
+
+
+def largest_target(config: CertifyConfig) -> tuple[float, int]:
+    """The target radius of the adaptive anchors when every selection sample votes for one class (the
+    largest any selection can give; it needs no classifier), and the most anchors then (:func:`placement`)."""
+    _, most, target_of = _planned(int(config.n0), config)
+    return target_of(most), most
+
+
+def anchor_grid(cloud: Cloud, imaging: Imaging, plan: Plan, config: CertifyConfig) -> Plan:
+    """The grid the four-process mode renders for the certifier's adaptive anchors: ``plan`` refined
+    (:func:`refine_for_target`) for :func:`largest_target`. The planner node has no classifier, so it
+    cannot refine for the target the selection samples will give, as the pipeline does: with a smaller
+    target its segments are coarser than the pipeline's (looser bounds: a smaller radius, never a wrong
+    one). The certifier cannot refine the frontier either (no renderer), so the first segment on each side
+    of 0 gets the points the frontier refinement would reach there, at ``FRONTIER_PARTS^-k`` of its length
+    (``k = 1 .. FRONTIER_ROUNDS``; the refinement leaves room for them within :func:`grid_cap`, and where
+    the plan itself fills the cap as many as fit are added, the coarsest first): a weak frame's covered
+    run, which stops near 0, then ends at one of them instead of at 0. The grid is fixed before any noise
+    is drawn, from the cloud and the configuration only (a planner configured differently from the
+    certifier only changes how tight the bounds are). Other imaging or coverage: ``plan`` itself.
+    ``config``: the axis' (its per-axis ``alpha``, as the certifier will use)."""
+    config = config.validate()
+    if imaging.kind != "surfel" or config.coverage != "anchors":
+        return plan
+    target, most = largest_target(config)
+    if target <= 0:
+        return plan
+    renderer = make_renderer(cloud, imaging, plan.axis, device=config.device,
+                             alpha_range=(float(plan.alphas[0]), float(plan.alphas[-1])))
+    frames = renderer.render_batch(plan.alphas).cpu().numpy()
+    near_points = 2 * FRONTIER_ROUNDS
+    plan = refine_for_target(renderer, plan, frames, target, most, config, reserve=near_points)[0]
+    # the points near 0, coarsest first, as many as the cap leaves room for
+    a = plan.alphas
+    c = int(np.searchsorted(a, 0.0))
+    room = grid_cap(imaging, config) - len(a)
+    near = [float(a[j]) * FRONTIER_PARTS ** -k for k in range(1, FRONTIER_ROUNDS + 1) for j in (c - 1, c + 1) if 0 <= j < len(a)]
+    near = near[:max(0, room)]
+    if not near:
+        return plan
+    alphas = np.union1d(a, np.asarray(near, dtype=np.float64))
+    return Plan(plan.method, plan.axis, plan.radius, float(np.diff(alphas).max()), len(alphas), alphas, plan.unit,
+                dict(plan.details, near_centre_points=int(len(alphas) - len(a))))
+
+
+def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: LoadedModel,
+                      config: CertifyConfig, denoiser,
+                      progress, method: str, timings: dict[str, float], t_start: float) -> Certificate:
+    """Anchors from the distance profile (:mod:`.anchors`): the selection samples at alpha = 0 predict a target
+    radius; the grid is refined where consecutive frames differ by more than a fraction of it; anchors are
+    placed so that every segment lies within the target of one (sound bounds of :func:`.imaging.segment_hulls`);
+    then p_A is estimated at those anchors only (Bonferroni over them) and segment ``i`` is covered by any
+    anchor ``a`` with ``D_i(x_a) < R_a``. ``geometry``: :class:`_RendererGeometry` (refines the grid and the
+    frontier) or :class:`_FixedGeometry` (frames and bounds received, nothing refined)."""
+    sc = SmoothedClassifier(model, config.sigma, batch_size=config.batch_size, seed=config.seed, denoiser=denoiser)
+    budget_samples = int(config.num_anchors) * int(config.n)    # the estimation budget of the axis
+    total_work = config.n0 + budget_samples
+    t0 = time.perf_counter()
+    plan = geometry.start(plan)
+    frames = geometry.frames(plan)
+    t_render = timings.get("render", 0.0) + time.perf_counter() - t0
+    zero = int(np.searchsorted(plan.alphas, 0.0))  # the selection frame: alpha = 0 is on every grid
+    require(zero < len(plan.alphas) and plan.alphas[zero] == 0.0, "plan grid lacks alpha = 0")
+    counts0 = sc.sample_counts(torch.as_tensor(frames[zero:zero + 1]), int(config.n0))
+    label = int(torch.argmax(counts0[0]).item())
+    if progress is not None:
+        progress(config.n0, total_work)
+    looks_of, max_anchors, target_of = placement(int(counts0[0, label]), config)
+    target = target_of(max_anchors)
+    t0 = time.perf_counter()
+    if target > 0:
+        plan, frames = geometry.refine(plan, frames, target, max_anchors, share=FIRST_ROUND_SHARE)
+    t_render += time.perf_counter() - t0
+    t_stats = 0.0
+
+    def row(jj: int, i0: int = 0, i1: int | None = None) -> np.ndarray:
+        return hulls.dist_sq(frames[jj], slice(i0, i1))
+
+    # Anchors on the refined grid; where they cannot cover the requested radius at the target, the grid is
+    # refined REFINE_ROUNDS - 1 rounds more (each on the frames the last one rendered; only the new segments
+    # are bounded) and the anchors placed again: on a real camera frame many small pixel changes add up, so
+    # the end frames of a split segment stay far apart (distance grows like the square root of the motion;
+    # RealSense frame, a constant classifier at 160x90, ry: one round 5% of the requested radius, two 54%, three 66%;
+    # two rounds keep every axis within 5 s there: tz 3.8 s instead of 5.2 s, demo frame 6 5.9 s instead of 8.1 s).
+    # A frame covered after one round pays for no more. Only the bounds and the selection samples are used:
+    # the anchors are fixed before any estimation sample is drawn.
+    # Of the two placements the one whose anchors would cover more (each at the Cohen radius the selection
+    # predicts at its own Bonferroni level alpha / K: more anchors, each a little weaker) is kept.
+    best = None
+    for attempt in (1, 2):
+        t0 = time.perf_counter()
+        hulls = geometry.bounds(plan)
+        timings = dict(timings, bounds=timings.get("bounds", 0.0) + time.perf_counter() - t0)
+        t1 = time.perf_counter()
+        centre = int(np.searchsorted(plan.alphas, 0.0))
+        anchor_rows: dict[int, np.ndarray] = {}
+        est_idx = rule.place(row, plan.alphas, centre, target, rows_out=anchor_rows)
+        predicted = rule.predicted_reach(anchor_rows, est_idx, plan.alphas, centre, target_of(len(est_idx)))
+        chosen = (predicted, est_idx, anchor_rows, max_anchors)
+        if 0 < target and predicted < plan.radius:
+            # the budget is an upper bound: a smaller one (a larger target, a level of fewer anchors) may reach
+            # farther on this grid (:func:`.anchors.best_placement`; bounds and selection samples only)
+            chosen = best_placement(rule, row, plan.alphas, centre, max_anchors, target_of, plan.radius,
+                                    first=(est_idx, anchor_rows))
+        if best is None or chosen[0] >= best[0]:   # a tie: the refined grid (finer segments, tighter bounds)
+            best = (chosen[0], plan, frames, hulls, centre, chosen[1], chosen[2], chosen[3])
+        t_stats += time.perf_counter() - t1
+        if target <= 0 or attempt == 2 or predicted >= plan.radius:
+            break
+        t0 = time.perf_counter()
+        finer, finer_frames = plan, frames
+        keep = None
+        if len(est_idx) < max_anchors:
+            # the placement stopped at a segment no grid frame nearby covers, with anchors to spare: the run it
+            # covers stays as it is and only the grid beyond it is refined (its anchors keep covering it)
+            D2 = np.stack([anchor_rows[int(a)] for a in est_idx])
+            keep = covered_run(rule.radius(np.full(len(est_idx), target), D2, plan.alphas, centre)[1], plan.alphas, centre)
+        for _ in range(REFINE_ROUNDS - 1):
+            finer, finer_frames = geometry.refine(finer, finer_frames, target, max_anchors, keep=keep)
+        t_render += time.perf_counter() - t0
+        if len(finer.alphas) == len(plan.alphas):
+            break
+        plan, frames = finer, finer_frames
+    predicted, plan, frames, hulls, centre, est_idx, anchor_rows, budget = best
+    N = plan.num_partitions
+    K = len(est_idx)
+    # the looks, from the bounds and the selection samples only, before any estimation draw: the budget the
+    # anchors were placed for where they cover the request at its target; else (short of it) the K anchors
+    # placed share the whole estimation budget (a larger look each: joint plan, .sequential)
+    covers_request = rule.predicted_reach(anchor_rows, est_idx, plan.alphas, centre, target_of(budget)) >= plan.radius
+    looks = looks_of(budget if covers_request else K)
+    spread = bool(config.spread_estimation) and 0 < K and predicted < plan.radius
+    if spread and budget_samples // K > looks.last:
+        # the samples the axis was sized for go to the anchors there are (one look of num_anchors * n // K
+        # samples each, joint where the plan's first look was, the same K): CertifyConfig.spread_estimation
+        looks = Looks((budget_samples // K,), (1.0,), looks.joint)
+    D2 = np.stack([anchor_rows[int(a)] for a in est_idx])
+    planned = target_of(budget if covers_request else K)   # the radius each anchor is planned to get
+
+    def votes_of(idx: np.ndarray, m: int) -> np.ndarray:
+        # the anchors of a call share their noise draws (common random numbers: each bound holds, Bonferroni
+        # needs no independence between them, and the joint look needs them: SmoothedClassifier.common_votes)
+        return sc.common_votes(torch.as_tensor(frames[est_idx[idx]]), int(m), label).numpy()
+
+    def go_on(p: np.ndarray) -> np.ndarray:
+        # an anchor whose bound falls short of the radius it was placed for, while the anchors do not yet cover
+        # what the placement predicted (or the request): a decision from the samples seen so far (.sequential)
+        R_now = cohen_radii(p, config.sigma)
+        if rule.radius(R_now, D2, plan.alphas, centre)[0] >= min(float(predicted), float(plan.radius)):
+            return np.zeros(K, bool)
+        return R_now < planned
+
+    # the estimation (.sequential.estimate): a joint first look or the centre first, then looks for the anchors
+    # left short, the risk split over every look
+    est = estimate(votes_of, K, looks, config.alpha, go_on, budget=max(budget_samples, K * looks.sizes[0]), chunk=int(config.n))
+    p_lower, used = est.p_lower, est.samples
+    if progress is not None:
+        progress(total_work, total_work)
+    t1 = time.perf_counter()
+    R = cohen_radii(p_lower, config.sigma)
+    reach, covered = rule.radius(R, D2, plan.alphas, centre)   # the placed anchors: a fixed set (module doc of .anchors)
+    t_stats += time.perf_counter() - t1
+    splits: list[float] = []
+    if reach < plan.radius and R[0] > 0 and geometry.frontier is not None:
+        # the covered run stops inside a grid segment: refine it with the radii now known (frontier_reach)
+        t0 = time.perf_counter()
+        reach, splits = geometry.frontier(frames[est_idx], R, plan.alphas, covered, centre)
+        timings = dict(timings, bounds=timings.get("bounds", 0.0) + time.perf_counter() - t0)
+    t1 = time.perf_counter()
+    steps = np.sqrt(np.sum((frames[1:].astype(np.float64) - frames[:-1]) ** 2, axis=(1, 2, 3)))
+    half = (plan.alphas[:-1] >= -reach) & (plan.alphas[1:] <= reach)
+    bounds: dict[str, Any] = {
+        "anchors": [float(plan.alphas[a]) for a in est_idx], "target_radius": float(target),
+        "R_min": float(R.min()), "R_centre": float(R[0]), "segments_covered": int(covered.sum()),
+        "max_anchor_dist": float(np.sqrt(D2.min(axis=0).max())) if D2.size else 0.0,
+        # the rendered path over the covered range / (2 R): an estimate of the anchors needed, not a bound (a
+        # flickering path can be long inside one ball); packing_anchor_bound is one (packing_bound)
+        "path_length": float(steps.sum()), "path_anchor_bound": float(steps[half].sum() / (2 * max(float(R.max()), 1e-12))),
+        "packing_anchor_bound": packing_bound(frames[(plan.alphas >= -reach) & (plan.alphas <= reach)], float(R.max())),
+        "frontier_splits": len(splits), "spread_estimation": spread, "placement_budget": int(budget),
+        # what each bound rests on: its votes for the label of its samples, at the level of the look it stopped
+        # at (alpha * share / K; the largest of its looks' bounds): core.sequential
+        "looks": looks.to_dict(), **est.to_dict(),
+    }
+    if splits:
+        # the grid the certificate rests on holds the refinement points (self-audits check their segments)
+        alphas = np.union1d(plan.alphas, np.asarray(splits, dtype=np.float64))
+        plan = Plan(plan.method, plan.axis, plan.radius, float(np.diff(alphas).max()), len(alphas), alphas, plan.unit,
+                    dict(plan.details, frontier_splits=len(splits)))
+        centre = int(np.searchsorted(plan.alphas, 0.0))
+    t_stats += time.perf_counter() - t1
+    timings = dict(timings)
+    timings.update(render=t_render, inference=sc.inference_seconds, statistics=t_stats)
+    cert = _conclude(plan, centre, reach, {centre: 0}, p_lower, R, label, model, config,
+                     method, sc, bounds, timings, t_start, frames_rendered=N, n_est=int(used.max()) if K else 0)
+    if est.futile:
+        cert.reason = (f"stopped early at the original pose: {int(est.votes[0])} of {int(used[0])} noise samples for the "
+                       f"label, too few for a p_A bound above 0.5 even at all {looks.last} (futility stop; no bound claimed)")
+    return cert
