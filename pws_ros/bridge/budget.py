@@ -5,7 +5,8 @@ The certifier keeps a :class:`CostModel` of this machine: what a classifier batc
 what the geometry costs per grid point (rendering, the per-segment bounds, the anchor placement) and
 what an axis costs whatever its size (planning, set-up). It is measured by a warm-up (the classifier at
 start, the geometry on the first frame) and updated after every axis from the certificate's own
-timings (an exponential moving average, :data:`EMA_WEIGHT`).
+timings (the first axis of each imaging replaces the warm-up's figures, later ones are an exponential
+moving average, :data:`EMA_WEIGHT`).
 
 Before an axis runs, :func:`size_axis` turns the axis' share of the frame's budget into the sizes
 that bound its work: ``n0``, ``num_anchors`` and ``n`` (at most ``n0 + num_anchors * n`` classifier
@@ -77,6 +78,8 @@ class CostModel:
     point_s: float = math.nan    # one grid point: its frame rendered, its segment bounded, distance rows to anchors
     fixed_s: float = math.nan    # one axis whatever its sizes (planning, renderer set-up, previews)
     updates: int = 0             # observations folded in after the warm-up
+    fine_updates: int = 0        # of them, axes at the configured imaging / at the coarse one (their geometry)
+    coarse_updates: int = 0
     coarse_point_s: float = math.nan   # point_s and fixed_s at the coarse imaging (render factor 1)
     coarse_fixed_s: float = math.nan
 
@@ -130,7 +133,10 @@ class CostModel:
         calls = int(getattr(cert, "classifier_calls", 0) or 0)
         if not self.ready or not self.has(coarse) or calls <= 0 or "inference" not in t:
             return
-        w = EMA_WEIGHT
+        # the first axis replaces the warm-up's figures (a few grid points and calls of a grey frame, with the
+        # first-use costs in them: measured 3-7x above what the axes then take with EfficientNet-Lite0 on the
+        # RealSense frame), later axes are averaged in
+        w = EMA_WEIGHT if self.updates else 1.0
         n0 = int(cert.n0)
         est = calls - n0
         anchors = max(1, int(getattr(cert, "num_bounds", 0) or 0))   # the p_A bounds estimated: anchors (or frames)
@@ -143,10 +149,13 @@ class CostModel:
         geometry = sum(float(t.get(k, 0.0)) for k in ("render", "bounds", "statistics"))
         points = int(getattr(cert, "frames_rendered", 0) or 0) + int((cert.bounds or {}).get("frontier_splits", 0) or 0)
         fixed = max(0.0, float(wall_s) - float(t["inference"]) - geometry)
-        p_name, f_name = ("coarse_point_s", "coarse_fixed_s") if coarse else ("point_s", "fixed_s")
+        p_name, f_name, u_name = (("coarse_point_s", "coarse_fixed_s", "coarse_updates") if coarse
+                                  else ("point_s", "fixed_s", "fine_updates"))
+        w = EMA_WEIGHT if getattr(self, u_name) else 1.0
         if points > 0:
             setattr(self, p_name, (1 - w) * getattr(self, p_name) + w * geometry / points)
         setattr(self, f_name, (1 - w) * getattr(self, f_name) + w * fixed)
+        setattr(self, u_name, getattr(self, u_name) + 1)
         self.updates += 1
 
 

@@ -448,10 +448,11 @@ class FrameCertifier:
         share = 0.0
         if budgeted:
             startup += self.budget.ready(cloud, imaging, dense_cloud, coarse_imaging)
-            share = self.budget.share(time.perf_counter() - t0 - startup)   # of what is left after the frame's imaging
         if imaging is not None:
-            for axis in self.config.axes:
+            for k, axis in enumerate(self.config.axes):
                 t1 = time.perf_counter()
+                if budgeted:   # of what is left of the frame's budget: an axis that took less leaves it to the next
+                    share = self.budget.share(t1 - t0 - startup, len(self.config.axes) - k)
                 if should_stop is not None and should_stop():
                     certs.append(self.error_for(axis, "shutting down"))
                     timings[axis] = time.perf_counter() - t1

@@ -162,7 +162,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("num_anchors", 24, "anchor frames for coverage=anchors (surfel imaging: the estimation budget in anchors of n "
               "samples, i.e. at most n0 + num_anchors * n classifier calls per axis; with the joint first look up to "
               "num_anchors * n / n_first anchors are placed; a frame needing more gets a smaller radius)", range=(1, 100_000), nodes=_ANCHOR),
-    ParamSpec("time_budget_s", 0.0, "time budget per frame, split evenly over its axes: the certifier measures what a "
+    ParamSpec("time_budget_s", 0.0, "time budget per frame, split evenly over its axes (what an axis leaves unused goes to the axes after it): the certifier measures what a "
               "classifier call and the geometry cost on this machine (a warm-up, then every axis) and sizes n0, num_anchors, n and "
               "max_partitions of each axis (never above the configured ones) before it draws any sample, so that the axis "
               "finishes within its share; a frame that needs more gets a smaller radius, never more time; where even the least "
