@@ -160,9 +160,9 @@ def params_from_yaml_dict(data: Any, node_name: str | None = None, source: str =
     own = [(k, v) for k, v in sections if str(k) not in ("/**", "**") and _node_matches(str(k), node_name)]
     # a file whose every section is for other nodes configures nothing here: surely a misnamed section (a
     # shared file of a robot stack has sections for other nodes too, and then one for these or '/**')
-    mine = [k for k, _ in sections if str(k) in ("/**", "**") or any(_node_matches(str(k), n) for n in NODES)]
-    require(bool(mine), f"{source}: no section applies to pws_ros (sections: {', '.join(str(k) for k, _ in sections)}): "
-                        f"name one '/**' (every node) or after a node ({', '.join(NODES)})")
+    require(any(_node_matches(str(k), n) for k, _ in sections for n in NODES),
+            f"{source}: no section applies to pws_ros (sections: {', '.join(str(k) for k, _ in sections)}): "
+            f"name one '/**' (every node) or after a node ({', '.join(NODES)})")
     for k, v in wild + own:
         body = v["ros__parameters"]
         require(isinstance(body, dict), f"{source}: {k}.ros__parameters must be a mapping")

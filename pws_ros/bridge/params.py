@@ -19,6 +19,7 @@ from ..core.motion import AXES, PAPER_RADIUS, UNITS
 from ..core.certify import COVERAGES, METHODS  # the certification core owns these lists
 from ..core.imaging import DEFAULT_RENDER_FACTOR, IMAGING_KINDS, UNCOVERED
 from ..core.partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX
+from ..core.sequential import FIRST_LOOK
 
 INPUT_MODES = ("auto", "pointcloud2", "rgbd")
 QOS_PROFILES = ("sensor_data", "reliable", "best_effort", "system_default")
@@ -152,7 +153,7 @@ PARAMS: tuple[ParamSpec, ...] = (
               "large model is often faster per image in small calls: the certifier times 4 against it once at start and "
               "uses 4 when that is at least 1.25x as fast)",
               range=(1, 1_000_000), nodes=_CERT),
-    ParamSpec("n_first", 64, "noise samples of the anchors' joint first look (coverage=anchors with surfel imaging; "
+    ParamSpec("n_first", FIRST_LOOK, "noise samples of the anchors' joint first look (coverage=anchors with surfel imaging; "
               "docs/certificate.md): where the selection samples are (nearly) unanimous, the anchors share n_first noise "
               "draws and one bound on the rate at which all of them keep the label bounds each (no division of alpha by "
               "the anchors), so they are placed for what n_first samples certify, up to num_anchors * n / n_first of them; "

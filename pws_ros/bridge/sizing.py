@@ -118,14 +118,12 @@ class FrameBudget:
                 continue   # an axis that cannot plan is reported by its certificate
 
     # ---- decisions ----
-    def share(self, frame_s: float, axes_left: int | None = None) -> float:
-        """The next axis' share: an even split, over the ``axes_left`` axes still to run (default: all), of
+    def share(self, frame_s: float, axes_left: int) -> float:
+        """The next axis' share: an even split, over the ``axes_left`` axes still to run, of
         what is left of the frame's budget after ``frame_s`` seconds of the frame's own work (its imaging and
         the axes before; start-up work is not in it). An axis that took less than its share leaves the rest
         to the axes after it; one that took more takes it from them."""
-        c = self.engine.config
-        left = len(c.axes) if axes_left is None else int(axes_left)
-        return max(0.0, float(c.time_budget_s) - float(frame_s)) / max(1, left)
+        return max(0.0, float(self.engine.config.time_budget_s) - float(frame_s)) / max(1, int(axes_left))
 
     @staticmethod
     def can_coarsen(imaging: Any) -> bool:

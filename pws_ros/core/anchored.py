@@ -337,14 +337,15 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     # anchors were placed for where they cover the request at its target; else (short of it) the K anchors
     # placed share the whole estimation budget (a larger look each: joint plan, .sequential)
     covers_request = rule.predicted_reach(anchor_rows, est_idx, plan.alphas, centre, target_of(budget)) >= plan.radius
-    looks = looks_of(budget if covers_request else K)
+    placed_for = budget if covers_request else K
+    looks = looks_of(placed_for)
     spread = bool(config.spread_estimation) and 0 < K and predicted < plan.radius
     if spread and budget_samples // K > looks.last:
         # the samples the axis was sized for go to the anchors there are (one look of num_anchors * n // K
         # samples each, joint where the plan's first look was, the same K): CertifyConfig.spread_estimation
         looks = Looks((budget_samples // K,), (1.0,), looks.joint)
     D2 = np.stack([anchor_rows[int(a)] for a in est_idx])
-    planned = target_of(budget if covers_request else K)   # the radius each anchor is planned to get
+    planned = target_of(placed_for)   # the radius each anchor is planned to get
 
     def votes_of(idx: np.ndarray, m: int) -> np.ndarray:
         # the anchors of a call share their noise draws (common random numbers: each bound holds, Bonferroni

@@ -175,7 +175,6 @@ def hulls_within(renderer: SurfelRenderer, lo: float, hi: float, *, max_bytes: i
     another (:func:`.coverage.frontier_reach`) as for one whole plan (:func:`segment_hulls`). A grid
     whose bounds need more than ``max_bytes`` is refused."""
     sweep = _HullSweep(renderer, float(lo), float(hi))
-    sweep.policy = UnionPolicy()
     h, w = renderer.imaging.out_shape
 
     def hulls(g) -> HullValues:
@@ -204,7 +203,9 @@ class _HullSweep(FootprintSweep):
     """Bounds the surfel footprints over batches of consecutive segments: every tensor operation serves
     a whole batch, so its cost (and the wake-up of torch's threads) is shared by the segments."""
 
-    policy = None   # set per sweep (.surfel_cover.UnionPolicy)
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.policy = UnionPolicy()   # whether a batch tries the union first (.surfel_cover), per sweep
 
     @property
     def batch(self) -> int:
@@ -226,8 +227,6 @@ class _HullSweep(FootprintSweep):
         sure_first, q, cp = first_covers(self.union(float(g[0]), float(g[-1])), lambda sub: _segment_boxes(*self.ranges(g, sub), H, W),
                                          B, EDGE_EPS, -EDGE_EPS, r.rank, r.samples, covered_pairs, candidates=True, policy=self.policy)
         sure_first = sure_first.view(-1)
-        HW = H * W
-        dev = r.device
         # the values of the native pixels: the renderer's own float32 colours (and its uncovered value of
         # each pixel where no surfel surely covers it), their least and greatest per channel exactly
         col = r.colors

@@ -44,10 +44,6 @@ MOTION_LIMIT = 0.6
 MIN_MARGIN = 1e-9
 
 
-def _nan_to(x: torch.Tensor, value: float) -> torch.Tensor:
-    return torch.where(torch.isnan(x), torch.full_like(x, value), x)
-
-
 def range_implied(samples) -> bool:
     """Whether a sample point inside a box (the box test of :func:`.surfel.covered_pairs`, any ``eps`` >= 0
     or its negative) always lies in the pixel range it enumerates for that box, so that the box test alone
@@ -116,12 +112,15 @@ def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: to
     rounding (:func:`widen`). ``policy``: see :class:`UnionPolicy`. With ``candidates``, also ``(where, point)`` of every outer pair of rank at
     most ``first`` at the pixels and elements where that may be more than the ``first`` surfel itself
     (``where = b * H * W + pixel``); everywhere else the ``first`` surfel (if any) is the only one."""
+    def enumerated():   # every element's pairs (reference_first_covers)
+        first, where, point = reference_first_covers(*element_boxes(None), eps, ieps, rank, samples, pairs)
+        return (first, where, point) if candidates else first
+
     direct = policy is not None and policy.skip > 0
     if direct:
         policy.skip -= 1
     if direct or not range_implied(samples):
-        first, where, point = reference_first_covers(*element_boxes(None), eps, ieps, rank, samples, pairs)
-        return (first, where, point) if candidates else first
+        return enumerated()
     HW = samples.H * samples.W
     (U, umask, I, imask_u), P = union, len(rank)
     dev = rank.device
@@ -130,8 +129,7 @@ def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: to
         # SURFEL_OVERLAP px; the median surfel): past MOTION_LIMIT most pixels change, so enumerate directly
         move = torch.maximum(U[1] - U[0], U[3] - U[2])[umask & imask_u]
         if len(move) and float(move.median()) - (1.0 + 2 * SURFEL_OVERLAP) > MOTION_LIMIT:
-            first, where, point = reference_first_covers(*element_boxes(None), eps, ieps, rank, samples, pairs)
-            return (first, where, point) if candidates else first
+            return enumerated()
     # 1. the union: per pixel the first pair in occlusion order, and the first surely covering throughout
     pt, pix, ins = pairs(*(x[None] for x in U), umask[None], samples, eps, inner=(*(x[None] for x in I), imask_u[None], ieps))
     rk = rank[pt]
@@ -147,8 +145,7 @@ def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: to
         # element by element costs more than enumerating every element's pairs
         if policy is not None:
             policy.skip = policy.RETRY_AFTER
-        first, where, point = reference_first_covers(*element_boxes(None), eps, ieps, rank, samples, pairs)
-        return (first, where, point) if candidates else first
+        return enumerated()
     where_out, point_out = [], []
     if len(pt):
         subset, loc = torch.unique(pt, sorted=True, return_inverse=True)
