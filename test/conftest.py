@@ -31,6 +31,13 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
+def need_ros() -> None:
+    """Skips the calling test unless ROS 2 Jazzy's rclpy, launch and launch_ros are importable (live tests)."""
+    for mod in ("rclpy", "launch", "launch_ros"):
+        if importlib.util.find_spec(mod) is None:
+            pytest.skip(f"{mod} (ROS 2 Jazzy) is not importable: source a ROS 2 Jazzy installation")
+
+
 def shared_path(*parts: str) -> Path:
     """A path in the shared data folder; skips the calling test when the folder or the path is absent."""
     root = shared_data_dir()

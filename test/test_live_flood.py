@@ -17,7 +17,6 @@ The nodes run from this working tree and DDS stays on the loopback interface (a 
 """
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import os
@@ -29,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import need_ros
 from pws_ros.nodes.live import (  # imports without ROS: rclpy only inside its functions
     COLOR, DEPTH, DEPTH_INFO, INFO, POINTS, REPO, TF_STATIC, Launch, Player, demo_frames, play_frame, ros_env, status_kb, wait_for,
 )
@@ -45,10 +45,6 @@ DEMO_CERTIFICATIONS = 3
 W, H, FX, CX, CY = 160, 120, 115.0, 79.5, 59.5   # the flood's camera: the demo model's input (160x90) fits in it
 
 
-def _need_ros():
-    for mod in ("rclpy", "launch", "launch_ros"):
-        if importlib.util.find_spec(mod) is None:
-            pytest.skip(f"{mod} (ROS 2 Jazzy) is not importable: source a ROS 2 Jazzy installation")
 
 
 def write_config(path: Path, input_mode: str) -> Path:
@@ -453,7 +449,7 @@ RUNS = [("pws.launch.py", "auto"), ("pws_nodes.launch.py", "auto"), ("pws_nodes.
 
 @pytest.mark.parametrize("launch_file,input_mode", RUNS)
 def test_flooded_graph_survives_and_certifies_the_demo(launch_file, input_mode, tmp_path, monkeypatch):
-    _need_ros()
+    need_ros()
     r = run_flood(launch_file, input_mode, tmp_path, monkeypatch)
     text = r["log"]
     assert r["cases"] >= 90 and r["messages_total"] >= r["cases"], (r["cases"], r["messages_total"])

@@ -16,7 +16,6 @@ run from this working tree, DDS on the loopback interface (:mod:`pws_ros.nodes.l
 """
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import subprocess
@@ -27,6 +26,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from conftest import need_ros
 from pws_ros.nodes.live import COLOR, DEPTH, DEPTH_INFO, INFO, REPO, Launch, Player, demo_frames, play_frame, ros_env, wait_for
 
 pytestmark = [pytest.mark.rclpy, pytest.mark.slow]
@@ -37,10 +37,6 @@ WANT = 5                 # certifications to collect while the demo loops
 LISTEN = {"/certified_label": "DiagnosticArray", "/certification/overlay": "Image", "/diagnostics_agg": "DiagnosticArray"}
 
 
-def _need_ros():
-    for mod in ("rclpy", "launch", "launch_ros"):
-        if importlib.util.find_spec(mod) is None:
-            pytest.skip(f"{mod} (ROS 2 Jazzy) is not importable: source a ROS 2 Jazzy installation")
 
 
 def write_config(path: Path) -> Path:
@@ -143,7 +139,7 @@ def run_live(launch_file: str, root: Path, monkeypatch) -> dict:
 
 @pytest.mark.parametrize("launch_file", list(CERTIFYING))
 def test_certified_label_overlay_and_health_live(launch_file, tmp_path, monkeypatch):
-    _need_ros()
+    need_ros()
     r = run_live(launch_file, tmp_path, monkeypatch)
     certs = {}
     for m in r["certs"]:
