@@ -12,7 +12,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from .anchors import FIRST_ROUND_SHARE, REFINE_FRACTION, REFINE_ROUNDS, best_placement, predicted_target, refine_plan, target_radius
+from .anchors import FIRST_ROUND_SHARE, REFINE_FRACTION, REFINE_ROUNDS, best_placement, planned_votes, predicted_target, refine_plan, target_radius
 from .certify_common import CertifyConfig, _conclude, bounds_bytes, segment_bytes
 from .cloud import Cloud
 from .coverage import (FRONTIER_PARTS, FRONTIER_ROUNDS, AdaptiveAnchorsRule, cohen_radii, covered_run, frontier_reach, packing_bound,
@@ -169,7 +169,7 @@ def _planned(k0: int, config: CertifyConfig) -> tuple[Callable[[int], Looks], in
     def joint(k: int) -> float:
         looks = looks_of(k)
         m = int(looks.sizes[0])
-        return predicted_target(int(np.floor(m * joint_rate(int(k0), n0, int(k)))), m, sigma, looks.level(0, alpha, int(k)))
+        return predicted_target(planned_votes(joint_rate(int(k0), n0, int(k)), m, n0), m, sigma, looks.level(0, alpha, int(k)))
 
     m_most = int(looks_of(most).sizes[0])
     if joint(most) / m_most >= individual(int(config.num_anchors)) / n:

@@ -18,6 +18,7 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
+from scipy.stats import betabinom
 
 from .partition import Plan
 from .smoothing import clopper_pearson_lower, cohen_radius
@@ -27,13 +28,28 @@ REFINE_ROUNDS = 2      # rounds of that subdivision where the anchors of the fir
 FIRST_ROUND_SHARE = 0.5  # of the room the grid cap leaves, the first round may take (the rest: the rounds after it)
 TARGET_MARGIN = 0.95   # the target radius is this fraction of the radius the selection samples predict
 SEARCH_WINDOW = 16     # grid frames beyond the first uncovered segment tried as the next anchor
+PLAN_QUANTILE = 0.75   # a unanimous selection: the votes planned for are this quantile of their predictive
+
+
+def planned_votes(rate: float, m: int, n0: int) -> int:
+    """The votes of ``m`` samples a plan counts on at the vote rate ``rate`` the ``n0`` selection samples
+    gave: ``floor(m * rate)``, and where the selection was unanimous (``rate`` 1) the PLAN_QUANTILE
+    quantile of the ``m`` votes' posterior predictive (a uniform prior: ``p ~ Beta(n0 + 1, 1)``, the votes
+    beta-binomial; all ``m`` while ``P(all m) = (n0 + 1) / (n0 + m + 1) > 1 - PLAN_QUANTILE``). A
+    selection cannot tell ``p_A = 0.98`` from 1 (0.98^64 = 0.27): read as ``p_A = 1``, it predicted for
+    1,024 samples a unanimous look where 1,005 votes came; the anchors, placed for that, left gaps, and more
+    samples per anchor certified less (issue 34). A planning value only: soundness never rests on it."""
+    if rate < 1.0:
+        return int(np.floor(int(m) * max(0.0, float(rate))))
+    return int(betabinom.ppf(PLAN_QUANTILE, int(m), int(n0) + 1, 1))
 
 
 def target_radius(k0: int, n0: int, n: int, sigma: float, alpha: float, max_anchors: int) -> float:
     """The Cohen radius an anchor will likely get: the selection frequency ``k0 / n0`` carried over to
-    ``n`` estimation samples at the worst Bonferroni level ``alpha / max_anchors``, times TARGET_MARGIN
-    (0 when the prediction is not above 1/2). A planning value only: soundness never rests on it."""
-    k_hat = int(np.floor(n * k0 / max(1, n0)))
+    ``n`` estimation samples (:func:`planned_votes`) at the worst Bonferroni level ``alpha / max_anchors``,
+    times TARGET_MARGIN (0 when the prediction is not above 1/2). A planning value only: soundness never
+    rests on it."""
+    k_hat = planned_votes(int(k0) / max(1, int(n0)), n, n0)
     p = float(clopper_pearson_lower(k_hat, n, alpha / max(1, max_anchors)))
     if p <= 0.5:
         return 0.0
