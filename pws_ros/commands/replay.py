@@ -214,7 +214,8 @@ def register(subparsers) -> None:
                    help="estimation budget per axis in anchors of n samples (n0 + anchors * n classifier calls at most; "
                         "up to anchors * n / n_first anchors with the joint first look; default: config num_anchors, 24)")
     c.add_argument("--time-budget", type=float, default=None, metavar="S",
-                   help="seconds per frame, split evenly over its axes: n0, num_anchors, n and max_partitions of each axis are "
+                   help="seconds per frame; each axis gets what is left of it, shared evenly over the axes still to run: "
+                        "n0, num_anchors, n and max_partitions of each axis are "
                         "sized from the measured cost of a classifier call and of the geometry before any sample is drawn; "
                         "a frame that needs more gets a smaller radius (default: config time_budget_s, 0 = off)")
     c.add_argument("--audit-every", type=int, default=None,
