@@ -222,3 +222,22 @@ def test_augment_keeps_the_background_and_gains_the_drawn_pixels():
     assert ((ratio > 0.6 * 0.8 - 1e-6) & (ratio < 1.4 * 1.2 + 1e-6)).all() and not torch.allclose(ratio, torch.ones_like(ratio))
     moved = t.augment(x.clone(), torch.Generator().manual_seed(1))
     assert moved.shape == x.shape and float(moved.min()) >= 0.0 and float(moved.max()) <= 1.0
+
+
+def test_a_ceiling_file_of_other_settings_is_refused(tmp_path):
+    """bench/real_task --ceiling FILE: a file measured at another sigma (or, where it records them, another
+    input size or other options) would put another imaging's ceiling beside the model: refused, naming the
+    file and what differs; one of these settings is read."""
+    from pws_ros.bench.real_task import _check_ceiling
+
+    here = {"recording": "/data/held", "size": [60, 80], "sigma": 0.25, "options": ["--window", "0.3"]}
+    path = tmp_path / "ceiling.json"
+    old_style = {"sigma": 0.35, "rows": [{"recording": "/data/held"}]}     # `pws ceiling --json` as written before
+    with pytest.raises(SystemExit, match=r"ceiling\.json was measured with other settings: sigma 0\.35 \(here 0\.25\)"):
+        _check_ceiling(path, old_style, here)
+    _check_ceiling(path, dict(old_style, sigma=0.25), here)
+    with pytest.raises(SystemExit, match=r"options \['--window', '0\.5'\]"):
+        _check_ceiling(path, {"made_with": dict(here, options=["--window", "0.5"])}, here)
+    with pytest.raises(SystemExit, match=r"size \[120, 160\]"):
+        _check_ceiling(path, {"made_with": dict(here, size=[120, 160])}, here)
+    _check_ceiling(path, {"made_with": dict(here)}, here)

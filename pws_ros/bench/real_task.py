@@ -55,6 +55,19 @@ def at_fractions(curve: list[list[float]], requested: float) -> list[float]:
     return [next(a for r, a in curve if abs(r - f * requested) <= 1e-9 * max(1.0, requested)) for f in FRACTIONS]
 
 
+def _check_ceiling(path: Path, ceil: dict, made_with: dict) -> None:
+    """A ceiling file read instead of measured must be of these frames, this sigma and, where it says, this
+    input size and these options: else its column would be another imaging's, silently."""
+    got = ceil.get("made_with")
+    if got is None:   # an older file, or `pws ceiling --json` itself: its sigma and recording are all it states
+        got = {"sigma": ceil.get("sigma"), "recording": (ceil.get("rows") or [{}])[0].get("recording")}
+    bad = [f"{k} {got[k]!r} (here {made_with[k]!r})" for k in made_with
+           if k in got and got[k] is not None and (float(got[k]) != float(made_with[k]) if k == "sigma" else got[k] != made_with[k])]
+    if bad:
+        raise SystemExit(f"real_task: the ceiling file {path} was measured with other settings: {'; '.join(bad)}: "
+                         "remove it (it is measured again) or give another --ceiling")
+
+
 def limited_by(row: dict, ceiling: float | None, requested: float) -> str:
     """What limited one certificate: reached (the whole radius), the model (wrong class, abstained, or a
     radius under 90% of the ceiling), or the ceiling (the imaging)."""
@@ -78,12 +91,16 @@ def report(held: Path, model: Path, sigma: float, out: Path, methods: list[str],
     out.mkdir(parents=True, exist_ok=True)
     from ..core.model import load_model
 
+    size = load_model(model).input_size
+    made_with = {"recording": str(held), "size": [int(size[0]), int(size[1])], "sigma": float(sigma),
+                 "options": [str(a) for a in _ceiling_args(extra)]}
     if ceiling_file is not None and Path(ceiling_file).is_file():
         ceil = json.loads(Path(ceiling_file).read_text())
+        _check_ceiling(Path(ceiling_file), ceil, made_with)
     else:
-        size = load_model(model).input_size
         ceil = _run(["ceiling", held, "--no-model", "--size", f"{size[0]}x{size[1]}", "--sigma", sigma, "--json", "--quiet",
                      *_ceiling_args(extra)])
+        ceil["made_with"] = made_with
         (Path(ceiling_file) if ceiling_file is not None else out / "ceiling.json").write_text(json.dumps(ceil, indent=1) + "\n")
     ceiling = {(r["stamp_ns"], r["axis"]): r for r in ceil["rows"]}
     base = None
