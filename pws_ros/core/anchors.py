@@ -41,7 +41,7 @@ def planned_votes(rate: float, m: int, n0: int) -> int:
     samples per anchor certified less (issue 34). A planning value only: soundness never rests on it."""
     if rate < 1.0:
         return int(np.floor(int(m) * max(0.0, float(rate))))
-    return int(betabinom.ppf(PLAN_QUANTILE, int(m), int(n0) + 1, 1))
+    return int(betabinom.ppf(PLAN_QUANTILE - 1e-9, int(m), int(n0) + 1, 1))   # a float tie (m = 3 n0 + 3) goes below
 
 
 def target_radius(k0: int, n0: int, n: int, sigma: float, alpha: float, max_anchors: int) -> float:
