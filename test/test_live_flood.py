@@ -45,8 +45,6 @@ DEMO_CERTIFICATIONS = 3
 W, H, FX, CX, CY = 160, 120, 115.0, 79.5, 59.5   # the flood's camera: the demo model's input (160x90) fits in it
 
 
-
-
 def write_config(path: Path, input_mode: str) -> Path:
     path.write_text("/**:\n  ros__parameters:\n" + "".join(f"    {k}: {v}\n" for k, v in {
         "input_mode": input_mode,
@@ -137,8 +135,6 @@ def set_(msg, **fields):
 
 def flood_cases(M, base: int) -> list[tuple[str, list[tuple[str, object]]]]:
     """The malformed cases: (name, [(topic, message), ...]); each input case has its own stamp."""
-    from pws_ros.core.camera import CameraIntrinsics
-
     T = M.T
     s = iter(range(base, base + 10**12, 10_000_000))   # 10 ms apart
     u8 = T.u8

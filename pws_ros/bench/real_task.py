@@ -61,8 +61,7 @@ def _check_ceiling(path: Path, ceil: dict, made_with: dict) -> None:
     got = ceil.get("made_with")
     if got is None:   # an older file, or `pws ceiling --json` itself: its sigma and recording are all it states
         got = {"sigma": ceil.get("sigma"), "recording": (ceil.get("rows") or [{}])[0].get("recording")}
-    bad = [f"{k} {got[k]!r} (here {made_with[k]!r})" for k in made_with
-           if k in got and got[k] is not None and (float(got[k]) != float(made_with[k]) if k == "sigma" else got[k] != made_with[k])]
+    bad = [f"{k} {got[k]!r} (here {made_with[k]!r})" for k in made_with if got.get(k) is not None and got[k] != made_with[k]]
     if bad:
         raise SystemExit(f"real_task: the ceiling file {path} was measured with other settings: {'; '.join(bad)}: "
                          "remove it (it is measured again) or give another --ceiling")
