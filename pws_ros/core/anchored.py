@@ -6,6 +6,7 @@ planner), and their estimation in looks (:func:`_certify_anchored`). The placeme
 :mod:`.anchors`, the looks :mod:`.sequential`; :mod:`.certify` dispatches here and re-exports these names."""
 from __future__ import annotations
 
+import functools
 import time
 from typing import Any, Callable
 
@@ -17,6 +18,7 @@ from .certify_common import CertifyConfig, _conclude, bounds_bytes, segment_byte
 from .cloud import Cloud
 from .coverage import (FRONTIER_PARTS, FRONTIER_ROUNDS, AdaptiveAnchorsRule, cohen_radii, covered_run, frontier_reach, packing_bound,
                        segment_covers)
+from .distance_rows import DistanceRows
 from .errors import require
 from .imaging import HullValues, Imaging, SurfelRenderer, hulls_within, make_renderer
 from .model import LoadedModel
@@ -275,15 +277,15 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     if progress is not None:
         progress(config.n0, total_work)
     looks_of, max_anchors, target_of = placement(int(counts0[0, label]), config)
+    target_of = functools.lru_cache(maxsize=None)(target_of)
     target = target_of(max_anchors)
+    # every radius the placement compares distances with (.distance_rows: larger distances need no exact value)
+    plan_sq = max(float(target_of(k)) for k in range(1, int(max_anchors) + 1)) ** 2
     t0 = time.perf_counter()
     if target > 0:
         plan, frames = geometry.refine(plan, frames, target, max_anchors, share=FIRST_ROUND_SHARE)
     t_render += time.perf_counter() - t0
     t_stats = 0.0
-
-    def row(jj: int, i0: int = 0, i1: int | None = None) -> np.ndarray:
-        return hulls.dist_sq(frames[jj], slice(i0, i1))
 
     # Anchors on the refined grid; where they cannot cover the requested radius at the target, the grid is
     # refined REFINE_ROUNDS - 1 rounds more (each on the frames the last one rendered; only the new segments
@@ -302,6 +304,8 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
         timings = dict(timings, bounds=timings.get("bounds", 0.0) + time.perf_counter() - t0)
         t1 = time.perf_counter()
         centre = int(np.searchsorted(plan.alphas, 0.0))
+        dist = DistanceRows(hulls, frames, plan_sq)
+        row = dist.row
         anchor_rows: dict[int, np.ndarray] = {}
         est_idx = rule.place(row, plan.alphas, centre, target, rows_out=anchor_rows)
         predicted = rule.predicted_reach(anchor_rows, est_idx, plan.alphas, centre, target_of(len(est_idx)))
@@ -312,7 +316,7 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
             chosen = best_placement(rule, row, plan.alphas, centre, max_anchors, target_of, plan.radius,
                                     first=(est_idx, anchor_rows))
         if best is None or chosen[0] >= best[0]:   # a tie: the refined grid (finer segments, tighter bounds)
-            best = (chosen[0], plan, frames, hulls, centre, chosen[1], chosen[2], chosen[3])
+            best = (chosen[0], plan, frames, hulls, centre, chosen[1], chosen[2], chosen[3], dist)
         t_stats += time.perf_counter() - t1
         if target <= 0 or attempt == 2 or predicted >= plan.radius:
             break
@@ -330,7 +334,7 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
         if len(finer.alphas) == len(plan.alphas):
             break
         plan, frames = finer, finer_frames
-    predicted, plan, frames, hulls, centre, est_idx, anchor_rows, budget = best
+    predicted, plan, frames, hulls, centre, est_idx, anchor_rows, budget, dist = best
     N = plan.num_partitions
     K = len(est_idx)
     # the looks, from the bounds and the selection samples only, before any estimation draw: the budget the
@@ -356,6 +360,7 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
         # an anchor whose bound falls short of the radius it was placed for, while the anchors do not yet cover
         # what the placement predicted (or the request): a decision from the samples seen so far (.sequential)
         R_now = cohen_radii(p, config.sigma)
+        dist.complete(D2, est_idx, _square(R_now))
         if rule.radius(R_now, D2, plan.alphas, centre)[0] >= min(float(predicted), float(plan.radius)):
             return np.zeros(K, bool)
         return R_now < planned
@@ -368,6 +373,7 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
         progress(total_work, total_work)
     t1 = time.perf_counter()
     R = cohen_radii(p_lower, config.sigma)
+    dist.complete(D2, est_idx, _square(R))
     reach, covered = rule.radius(R, D2, plan.alphas, centre)   # the placed anchors: a fixed set (module doc of .anchors)
     t_stats += time.perf_counter() - t1
     splits: list[float] = []
@@ -382,7 +388,7 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     bounds: dict[str, Any] = {
         "anchors": [float(plan.alphas[a]) for a in est_idx], "target_radius": float(target),
         "R_min": float(R.min()), "R_centre": float(R[0]), "segments_covered": int(covered.sum()),
-        "max_anchor_dist": float(np.sqrt(D2.min(axis=0).max())) if D2.size else 0.0,
+        "max_anchor_dist": float(np.sqrt(dist.max_min(D2, est_idx))) if D2.size else 0.0,
         # the rendered path over the covered range / (2 R): an estimate of the anchors needed, not a bound (a
         # flickering path can be long inside one ball); packing_anchor_bound is one (packing_bound)
         "path_length": float(steps.sum()), "path_anchor_bound": float(steps[half].sum() / (2 * max(float(R.max()), 1e-12))),
@@ -407,3 +413,9 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
         cert.reason = (f"stopped early at the original pose: {int(est.votes[0])} of {int(used[0])} noise samples for the "
                        f"label, too few for a p_A bound above 0.5 even at all {looks.last} (futility stop; no bound claimed)")
     return cert
+
+
+def _square(R: np.ndarray) -> float:
+    """The largest ``R^2`` (inf where a radius is unbounded)."""
+    r = float(np.max(R)) if len(R) else 0.0
+    return r * r if r < 1e150 else float("inf")
