@@ -64,8 +64,8 @@ def range_implied(samples) -> bool:
 
 def widen(x: torch.Tensor, sign: float) -> torch.Tensor:
     """``x`` moved by ``UNION_SLACK`` outwards (``sign`` -1: down, +1: up; NaN: to that infinity)."""
-    y = x + sign * (UNION_SLACK + UNION_SLACK * x.abs())
-    return torch.where(torch.isnan(y), torch.full_like(y, sign * float("inf")), y)
+    y = torch.add(x, x.abs().mul_(UNION_SLACK).add_(UNION_SLACK), alpha=sign)   # x + sign (SLACK + SLACK |x|)
+    return y.nan_to_num_(nan=sign * float("inf"), posinf=float("inf"), neginf=-float("inf"))
 
 
 class UnionPolicy:
