@@ -101,3 +101,76 @@ def test_a_zero_threshold_answers_every_call_by_the_bound_until_completed():
     rows = np.stack([d.row(j, 0, None) for j in (0, 3)])
     assert d.exact_calls == 0
     assert d.max_min(rows, (0, 3)) == float(exact[[0, 3]].min(axis=0).max())
+
+
+def _scene(seed: int):
+    """A 32x24 camera seeing a far wall and two nearer boxes in 4x4 colour blocks (as test_anchor_budgets)."""
+    from pws_ros.core.camera import CameraIntrinsics
+    from pws_ros.core.cloud import cloud_from_rgbd
+
+    rng = np.random.default_rng(seed)
+    W, H = 32, 24
+    cam = CameraIntrinsics(W, H, 30.0, 30.0, (W - 1) / 2, (H - 1) / 2, "cam")
+    depth = np.full((H, W), rng.uniform(1.5, 3.0))
+    for _ in range(2):
+        x0, y0 = rng.integers(0, W - 4), rng.integers(0, H - 4)
+        depth[y0:y0 + rng.integers(3, H // 2), x0:x0 + rng.integers(3, W // 2)] = rng.uniform(0.6, 1.4)
+    colour = np.kron(rng.random((H // 4 + 1, W // 4 + 1, 3)), np.ones((4, 4, 1)))[:H, :W].astype(np.float32)
+    return cam, cloud_from_rgbd(depth, colour, cam)
+
+
+class _Linear:
+    """A fixed random linear classifier on the 12x16 input: its answer changes under noise, so the looks,
+    their go_on decisions and the radii vary from anchor to anchor."""
+
+    def __init__(self, seed: int):
+        import torch
+
+        from pws_ros.core.model import LoadedModel
+
+        g = torch.Generator().manual_seed(seed)
+        net = torch.nn.Sequential(torch.nn.Flatten(), torch.nn.Linear(12 * 16 * 3, 3))
+        with torch.no_grad():
+            net[1].weight.copy_(torch.randn(3, 12 * 16 * 3, generator=g) * 0.08)
+            net[1].bias.copy_(torch.tensor([2.0, 0.0, 0.0]))
+        self.model = LoadedModel(net.eval(), ["a", "b", "c"], (12, 16), "linear", {})
+
+
+@pytest.mark.parametrize("seed,axis,changing,n_first", [(0, "tz", False, 64), (1, "ry", False, 64), (2, "tx", True, 64),
+                                                      (5, "ty", True, 0), (5, "rz", True, 64), (4, "tx", True, 0)])
+def test_certificates_are_those_of_the_exact_rows(monkeypatch, seed, axis, changing, n_first):
+    """Whole certificates (radius, anchors, p_A bounds, every reported value) with the bound answering the
+    rows it can, against the same certification with every row computed exactly (threshold infinite)."""
+    import pws_ros.core.anchored as anchored
+    from pws_ros.core.certify import CertifyConfig, certify
+    from pws_ros.core.imaging import make_imaging
+    from pws_ros.replay.ceiling import never_changing_model
+
+    cam, cloud = _scene(seed)
+    im = make_imaging("surfel", cam, (12, 16), background=0.0, border=0)
+    model = _Linear(seed).model if changing else never_changing_model((12, 16))
+    radius = {"tx": 0.16, "ty": 0.16, "ry": 0.08, "tz": 0.4, "rz": 0.24}[axis]
+    cfg = CertifyConfig(sigma=0.5, n0=64, n=96, alpha=0.01, num_anchors=12, n_first=n_first, border=0, seed=seed)
+    made = []
+
+    class Recorded(DistanceRows):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            made.append(self)
+
+    class Exact(DistanceRows):
+        def __init__(self, hulls, frames, threshold_sq):
+            super().__init__(hulls, frames, float("inf"))
+
+    monkeypatch.setattr(anchored, "DistanceRows", Recorded)
+    fast = certify(cloud, cam, model, axis, radius, "pws_of", cfg, imaging=im)
+    monkeypatch.setattr(anchored, "DistanceRows", Exact)
+    slow = certify(cloud, cam, model, axis, radius, "pws_of", cfg, imaging=im)
+    a, b = fast.to_dict(), slow.to_dict()
+    a.pop("timings"), b.pop("timings")
+    assert a == b
+    assert fast.radius > 0 and len(fast.bounds["anchors"]) > 1
+    if changing:   # the model's answer changed under noise
+        assert fast.bounds["anchor_votes"] != fast.bounds["anchor_samples"]
+    # not vacuous: the bound answered some of the rows
+    assert sum(d.bound_calls for d in made) > 0

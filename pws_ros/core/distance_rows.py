@@ -37,6 +37,7 @@ class DistanceRows:
         self.lower = _lower_bounds(hulls, frames)
         self.approx: set[tuple[int, int, int]] = set()   # (j, i0, i1) calls answered by the bound
         self.exact_calls = 0
+        self.bound_calls = 0                            # calls answered by the bound
 
     def exact(self, j: int, i0: int, i1: int) -> np.ndarray:
         self.exact_calls += 1
@@ -50,6 +51,7 @@ class DistanceRows:
         if not len(lb) or bool((lb < self.threshold_sq).any()):
             return self.exact(j, i0, i1)
         self.approx.add((int(j), i0, i1))
+        self.bound_calls += 1
         return lb.copy()
 
     def complete(self, rows: np.ndarray, idx, threshold_sq: float, calls=None) -> None:
