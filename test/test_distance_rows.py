@@ -174,3 +174,16 @@ def test_certificates_are_those_of_the_exact_rows(monkeypatch, seed, axis, chang
         assert fast.bounds["anchor_votes"] != fast.bounds["anchor_samples"]
     # not vacuous: the bound answered some of the rows
     assert sum(d.bound_calls for d in made) > 0
+
+
+def test_the_placement_threshold_is_above_every_rounding_of_a_squared_target():
+    """Python's t ** 2 (C pow) and numpy's t * t may differ in the last place: a bound equal to the smaller
+    must not be taken for one below the larger (found by review: 6.214163824978197)."""
+    from pws_ros.core.anchored import _plan_sq
+
+    t = 6.214163824978197
+    assert t ** 2 != t * t
+    thr = _plan_sq([0.5, t, 1.0])
+    assert thr > t ** 2 and thr > t * t and thr > float(np.square(np.float64(t)))
+    assert thr < t * t * (1 + 1e-9)
+    assert _plan_sq([]) == 0.0 and _plan_sq([0.0, 0.0]) == 0.0

@@ -279,13 +279,16 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     looks_of, max_anchors, target_of = placement(int(counts0[0, label]), config)
     target_of = functools.lru_cache(maxsize=None)(target_of)
     target = target_of(max_anchors)
-    # every radius the placement compares distances with (.distance_rows: larger distances need no exact value)
-    plan_sq = max(float(target_of(k)) for k in range(1, int(max_anchors) + 1)) ** 2
+    t1 = time.perf_counter()
+    # every radius the placement compares distances with (.distance_rows: larger distances need no exact value):
+    # the targets of every budget up to the most anchors, and up to the rule's own budget (the weak frame's first
+    # placement), squared as Python's pow and numpy's t * t may round them, with room
+    plan_sq = _plan_sq([float(target_of(k)) for k in range(1, max(int(max_anchors), int(rule.num_anchors)) + 1)])
+    t_stats = time.perf_counter() - t1
     t0 = time.perf_counter()
     if target > 0:
         plan, frames = geometry.refine(plan, frames, target, max_anchors, share=FIRST_ROUND_SHARE)
     t_render += time.perf_counter() - t0
-    t_stats = 0.0
 
     # Anchors on the refined grid; where they cannot cover the requested radius at the target, the grid is
     # refined REFINE_ROUNDS - 1 rounds more (each on the frames the last one rendered; only the new segments
@@ -413,6 +416,12 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
         cert.reason = (f"stopped early at the original pose: {int(est.votes[0])} of {int(used[0])} noise samples for the "
                        f"label, too few for a p_A bound above 0.5 even at all {looks.last} (futility stop; no bound claimed)")
     return cert
+
+
+def _plan_sq(targets: list[float]) -> float:
+    """A threshold at or above every ``t^2`` of ``targets`` however it is rounded (``t ** 2`` calls C's pow,
+    numpy squares an array as ``t * t``: they may differ by one unit in the last place)."""
+    return max([0.0] + [max(t * t, t ** 2) for t in targets]) * (1.0 + 1e-12)
 
 
 def _square(R: np.ndarray) -> float:

@@ -105,10 +105,12 @@ def _lower_bounds(hulls, frames: np.ndarray) -> np.ndarray:
     yy, cc, rr = np.zeros(F), np.zeros(S), np.zeros(S)
     for s in range(0, n, GRAM_CHUNK):
         e = min(n, s + GRAM_CHUNK)
-        y = Y[:, s:e].astype(np.float64) - ref[s:e]                   # exact: float32 values less one of them
+        # float32 values in float64: their differences and sums are exact unless their exponents differ by about
+        # 30 (then the rounding is relative to the centred values, or 2u r, within the slack below)
+        y = Y[:, s:e].astype(np.float64) - ref[s:e]
         l64, h64 = lo[:, s:e].astype(np.float64), hi[:, s:e].astype(np.float64)
-        c = (l64 + h64) * 0.5 - ref[s:e]                              # exact: float32 sums halved, less a float32
-        r = (h64 - l64) * 0.5                                         # exact
+        c = (l64 + h64) * 0.5 - ref[s:e]
+        r = (h64 - l64) * 0.5
         G += y @ c.T
         yy += np.einsum("ij,ij->i", y, y)
         cc += np.einsum("ij,ij->i", c, c)
