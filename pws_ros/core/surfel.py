@@ -140,7 +140,7 @@ class SurfelRenderer:
         out = []
         for s in range(0, B, UNION_POSES):
             a = alphas[s:s + UNION_POSES]
-            union = sweep.union(float(a.min()), float(a.max()))
+            union = lambda a=a: sweep.union(float(a.min()), float(a.max()))   # noqa: E731 (only if the union pass runs)
             out.append(first_covers(union, lambda sub: boxes_at(a, sub), len(a), 0.0, 0.0, self.rank, self.samples,
                                     covered_pairs, policy=self._policy))
         return self.by_rank[torch.cat(out)].view(B, H, W)

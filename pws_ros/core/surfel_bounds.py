@@ -224,7 +224,7 @@ class _HullSweep(FootprintSweep):
         # the segment (the order is constant in alpha, equal keys included: the renderer's own ranks), so the
         # candidates are the possibly covering surfels up to it (.surfel_cover.first_covers: that one alone
         # where nothing else can be, decided once for the batch from where the footprints can be over it)
-        sure_first, q, cp = first_covers(self.union(float(g[0]), float(g[-1])), lambda sub: _segment_boxes(*self.ranges(g, sub), H, W),
+        sure_first, q, cp = first_covers(lambda: self.union(float(g[0]), float(g[-1])), lambda sub: _segment_boxes(*self.ranges(g, sub), H, W),
                                          B, EDGE_EPS, -EDGE_EPS, r.rank, r.samples, covered_pairs, candidates=True, policy=self.policy)
         sure_first = sure_first.view(-1)
         # the values of the native pixels: the renderer's own float32 colours (and its uncovered value of
