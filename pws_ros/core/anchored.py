@@ -13,8 +13,6 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from . import anchors as _anchors
-from . import sequential as _sequential
 from .anchors import FIRST_ROUND_SHARE, REFINE_FRACTION, REFINE_ROUNDS, best_placement, planned_votes, predicted_target, refine_plan, target_radius
 from .certify_common import CertifyConfig, _conclude, bounds_bytes, segment_bytes
 from .cloud import Cloud
@@ -285,15 +283,7 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     # every radius the placement compares distances with (.distance_rows: larger distances need no exact value):
     # the targets of every budget up to the most anchors, and up to the rule's own budget (the weak frame's first
     # placement), squared as Python's pow and numpy's t * t may round them, with room
-    key = (int(counts0[0, label]), int(config.n0), int(config.n), float(config.sigma), float(config.alpha),
-           int(config.num_anchors), int(config.n_first), int(max_anchors), int(rule.num_anchors),
-           _anchors.TARGET_MARGIN, _anchors.PLAN_QUANTILE, _sequential.FIRST_LOOK_SHARE)
-    plan_sq = _PLAN_SQ.get(key)
-    if plan_sq is None:   # what placement() reads of the configuration, and the budgets: the same targets
-        plan_sq = _plan_sq([float(target_of(k)) for k in range(1, max(int(max_anchors), int(rule.num_anchors)) + 1)])
-        if len(_PLAN_SQ) > 4096:
-            _PLAN_SQ.clear()
-        _PLAN_SQ[key] = plan_sq
+    plan_sq = _plan_sq([float(target_of(k)) for k in range(1, max(int(max_anchors), int(rule.num_anchors)) + 1)])
     t_stats = time.perf_counter() - t1
     t0 = time.perf_counter()
     if target > 0:
@@ -426,9 +416,6 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
         cert.reason = (f"stopped early at the original pose: {int(est.votes[0])} of {int(used[0])} noise samples for the "
                        f"label, too few for a p_A bound above 0.5 even at all {looks.last} (futility stop; no bound claimed)")
     return cert
-
-
-_PLAN_SQ: dict[tuple, float] = {}   # _plan_sq of the targets of one selection count and configuration (the same every frame)
 
 
 def _plan_sq(targets: list[float]) -> float:

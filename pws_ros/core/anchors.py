@@ -15,6 +15,7 @@ selection and estimation samples).
 """
 from __future__ import annotations
 
+import functools
 from typing import Callable
 
 import numpy as np
@@ -41,7 +42,13 @@ def planned_votes(rate: float, m: int, n0: int) -> int:
     samples per anchor certified less (issue 34). A planning value only: soundness never rests on it."""
     if rate < 1.0:
         return int(np.floor(int(m) * max(0.0, float(rate))))
-    return int(betabinom.ppf(PLAN_QUANTILE - 1e-9, int(m), int(n0) + 1, 1))   # a float tie (m = 3 n0 + 3) goes below
+    return _unanimous_votes(int(m), int(n0), PLAN_QUANTILE)
+
+
+@functools.lru_cache(maxsize=4096)
+def _unanimous_votes(m: int, n0: int, quantile: float) -> int:
+    """:func:`planned_votes` after a unanimous selection (remembered: the plans ask for it every frame)."""
+    return int(betabinom.ppf(quantile - 1e-9, m, n0 + 1, 1))   # a float tie (m = 3 n0 + 3) goes below
 
 
 def target_radius(k0: int, n0: int, n: int, sigma: float, alpha: float, max_anchors: int) -> float:

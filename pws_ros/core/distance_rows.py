@@ -54,15 +54,14 @@ class DistanceRows:
         self.bound_calls += 1
         return lb.copy()
 
-    def complete(self, rows: np.ndarray, idx, threshold_sq: float, calls=None) -> None:
+    def complete(self, rows: np.ndarray, idx, threshold_sq: float) -> None:
         """Make ``rows`` (the rows of grid frames ``idx``, as this object's calls gave them) exact wherever a
         call was answered by the bound and some segment of it lies below ``threshold_sq`` (a comparison with
-        a larger radius than the placement's threshold: the estimated Cohen radii). ``calls``: the
-        ``(j, i0, i1)`` of those rows' blocks (default: every call answered by the bound)."""
+        a larger radius than the placement's threshold: the estimated Cohen radii)."""
         if threshold_sq <= self.threshold_sq:
             return
         where = {int(j): k for k, j in enumerate(idx)}
-        for (j, i0, i1) in sorted(self.approx if calls is None else calls):
+        for (j, i0, i1) in sorted(self.approx):
             k = where.get(j)
             if k is not None and bool((self.lower[j, i0:i1] < threshold_sq).any()):
                 rows[k, i0:i1] = self.exact(j, i0, i1)

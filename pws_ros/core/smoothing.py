@@ -19,6 +19,7 @@ holds with probability at least ``1 - alpha``. ``m`` is the number of bounds act
 """
 from __future__ import annotations
 
+import functools
 import math
 import time
 from typing import Any, Callable, Iterator
@@ -77,8 +78,24 @@ def clopper_pearson_lower(k: Any, n: Any, alpha: Any) -> Any:
     """One-sided Clopper-Pearson lower bound on a binomial proportion at confidence ``1 - alpha``.
 
     ``Beta.ppf(alpha, k, n - k + 1)``; 0.0 when ``k == 0``. The largest ``p`` with
-    ``P(Bin(n, p) >= k) <= alpha``. Scalars give a float, arrays (broadcast) an ndarray.
+    ``P(Bin(n, p) >= k) <= alpha``. Scalars give a float, arrays (broadcast) an ndarray. Integer counts
+    and a float level are remembered (the anchors' plans ask for the same bounds every frame).
     """
+    if _plain_int(k) and _plain_int(n) and isinstance(alpha, (float, np.floating)):
+        return _cp_lower_scalar(int(k), int(n), float(alpha))
+    return _cp_lower(k, n, alpha)
+
+
+def _plain_int(x: Any) -> bool:
+    return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
+
+
+@functools.lru_cache(maxsize=4096)
+def _cp_lower_scalar(k: int, n: int, alpha: float) -> float:
+    return _cp_lower(k, n, alpha)
+
+
+def _cp_lower(k: Any, n: Any, alpha: Any) -> Any:
     a = _check_alpha(alpha)
     k_arr, n_arr = _check_counts(k, n)
     k_b, n_b, a_b = np.broadcast_arrays(k_arr, n_arr, a)

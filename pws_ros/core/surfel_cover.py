@@ -110,7 +110,7 @@ def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: to
     its outer box at every element (with a mask true wherever ``omask`` is) and one inside its inner box at
     every element (``imask``: true only where ``imask`` is true at every element), with room for float
     rounding (:func:`widen`); or a function returning them, called only where the union pass is taken (a batch
-enumerated directly never needs it). ``policy``: see :class:`UnionPolicy`. With ``candidates``, also ``(where, point)`` of every outer pair of rank at
+    enumerated directly never needs it). ``policy``: see :class:`UnionPolicy`. With ``candidates``, also ``(where, point)`` of every outer pair of rank at
     most ``first`` at the pixels and elements where that may be more than the ``first`` surfel itself
     (``where = b * H * W + pixel``); everywhere else the ``first`` surfel (if any) is the only one."""
     def enumerated():   # every element's pairs (reference_first_covers)
