@@ -21,6 +21,7 @@ from .coverage import (FRONTIER_PARTS, FRONTIER_ROUNDS, AdaptiveAnchorsRule, coh
 from .distance_rows import DistanceRows
 from .errors import require
 from .imaging import HullValues, Imaging, SurfelRenderer, hulls_within, make_renderer
+from .surfel_bounds import SegmentCovers
 from .model import LoadedModel
 from .partition import Plan
 from .result import Certificate
@@ -37,6 +38,7 @@ class _RendererGeometry:
         self.renderer, self.config = renderer, config
         self._bounds_of = None
         self._last = None   # the last grid bounded and its HullValues (a refinement bounds only its new segments)
+        self._covers = None  # what decided the bounds of the first grid bounded (its refinement's frames from it)
 
     def start(self, plan: Plan) -> Plan:
         """The grid to begin with. A plan already at the grid cap leaves the refinement no room, so every
@@ -55,7 +57,8 @@ class _RendererGeometry:
 
     def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
                keep: tuple[float, float] | None = None, share: float = 1.0) -> tuple[Plan, np.ndarray]:
-        return refine_for_target(self.renderer, plan, frames, target, max_anchors, self.config, keep=keep, share=share)
+        return refine_for_target(self.renderer, plan, frames, target, max_anchors, self.config, keep=keep, share=share,
+                                 render=None if self._covers is None else self._covers.render_batch)
 
     def bounds(self, plan: Plan):
         # one sweep over the plan's range bounds its grid here, the new segments of a refinement of it (the
@@ -63,7 +66,11 @@ class _RendererGeometry:
         g = plan.alphas
         if self._last is None or (self._last[0][0], self._last[0][-1]) != (g[0], g[-1]):
             self._bounds_of = hulls_within(self.renderer, float(g[0]), float(g[-1]), max_bytes=bounds_bytes(self.config))
-            self._last = (g, self._bounds_of(g))
+            # the grid's first surely covering surfels and candidates are kept (within COVERS_BYTES): the frames of a
+            # refinement of it, all inside its segments, are decided from them (.surfel_bounds.SegmentCovers)
+            covers = SegmentCovers(self.renderer, g) if SegmentCovers.nbytes(self.renderer, g) <= COVERS_BYTES else None
+            self._last = (g, self._bounds_of(g, covers))
+            self._covers = covers
         elif not np.array_equal(self._last[0], g):
             self._last = (g, refined_hulls(self._bounds_of, *self._last, g))
         return self._last[1]
@@ -98,6 +105,9 @@ class _FixedGeometry:
     frontier = None
 
 
+COVERS_BYTES = 256 * 2**20   # the most a grid's kept covers may take (4 bytes per segment and native pixel)
+
+
 def grid_cap(imaging: Imaging, config: CertifyConfig) -> int:
     """The most grid points a refined plan may have: ``max_partitions``, and as many frames and segment
     bounds as the memory ceiling holds (:func:`.certify_common.bounds_bytes`)."""
@@ -106,13 +116,14 @@ def grid_cap(imaging: Imaging, config: CertifyConfig) -> int:
 
 def refine_for_target(renderer: SurfelRenderer, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
                       config: CertifyConfig, reserve: int = 0, keep: tuple[float, float] | None = None,
-                      share: float = 1.0) -> tuple[Plan, np.ndarray]:
+                      share: float = 1.0, render: Callable[[np.ndarray], torch.Tensor] | None = None) -> tuple[Plan, np.ndarray]:
     """The plan refined where consecutive frames differ by more than ``target / REFINE_FRACTION``
     (:func:`.anchors.refine_plan`), and its frames (only the new poses rendered). Anchors cover about 2
     target radii of rendered path each: no refinement farther than the budget reaches; the refined grid
     stays within :func:`grid_cap` less ``reserve`` points (never below the plan's own size) and adds at
     most ``share`` of the room that leaves. One round; :func:`_certify_anchored` asks for more where the
-    anchors fall short."""
+    anchors fall short. ``render``: the new poses' frames (default the renderer's; the same frames from
+    :class:`.surfel_bounds.SegmentCovers` of a bounded grid holding them)."""
     coarse = plan
     room = max(0, grid_cap(renderer.imaging, config) - int(reserve) - len(frames))
     plan = refine_plan(plan, frames, target / REFINE_FRACTION, len(frames) + int(share * room),
@@ -122,7 +133,7 @@ def refine_for_target(renderer: SurfelRenderer, plan: Plan, frames: np.ndarray, 
         new = np.setdiff1d(np.arange(len(plan.alphas)), old)
         full = np.empty((len(plan.alphas),) + frames.shape[1:], dtype=frames.dtype)
         full[old] = frames
-        full[new] = renderer.render_batch(plan.alphas[new]).cpu().numpy()
+        full[new] = (render or renderer.render_batch)(plan.alphas[new]).cpu().numpy()
         frames = full
     return plan, frames
 

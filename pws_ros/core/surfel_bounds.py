@@ -24,9 +24,9 @@ import torch
 
 from .cloud import Cloud
 from .errors import require
-from .framing import EDGE_EPS, SAFETY, VALUE_EPS, Imaging, block_mean64
+from .framing import EDGE_EPS, SAFETY, VALUE_EPS, Imaging, block_mean64, reduce_frames
 from .partition import validate_grid
-from .surfel import FootprintSweep, SurfelRenderer, covered_pairs
+from .surfel import FootprintSweep, SurfelRenderer, covered_pairs, pixel_range
 from .surfel_cover import UnionPolicy, first_covers
 
 
@@ -173,11 +173,12 @@ def hulls_within(renderer: SurfelRenderer, lo: float, hi: float, *, max_bytes: i
     """``hulls(g)``: the :class:`HullValues` of the segments of an increasing grid ``g`` inside ``[lo, hi]``,
     bounded in batches of segments by one sweep set up once over ``[lo, hi]``; for grids chosen one after
     another (:func:`.coverage.frontier_reach`) as for one whole plan (:func:`segment_hulls`). A grid
-    whose bounds need more than ``max_bytes`` is refused."""
+    whose bounds need more than ``max_bytes`` is refused. ``hulls(g, covers)`` also keeps what decided the
+    bounds in ``covers`` (a :class:`SegmentCovers` of ``g``: frames inside the grid from it)."""
     sweep = _HullSweep(renderer, float(lo), float(hi))
     h, w = renderer.imaging.out_shape
 
-    def hulls(g) -> HullValues:
+    def hulls(g, covers: "SegmentCovers | None" = None) -> HullValues:
         g = np.asarray(g, dtype=np.float64)
         require(len(g) >= 2 and lo <= g[0] and g[-1] <= hi and bool(np.all(np.diff(g) > 0)),
                 f"grid {g!r} is not increasing inside [{lo!r}, {hi!r}]")
@@ -190,7 +191,9 @@ def hulls_within(renderer: SurfelRenderer, lo: float, hi: float, *, max_bytes: i
         constant = np.empty((S, h, w), bool)
         for s in range(0, S, sweep.batch):
             e = min(S, s + sweep.batch)
-            l_[s:e], h_[s:e], constant[s:e] = sweep.segments(g[s:e + 1])
+            l_[s:e], h_[s:e], constant[s:e] = sweep.segments(g[s:e + 1], None if covers is None else (covers, s))
+        if covers is not None:
+            covers.close()
         return HullValues(g, l_, h_, constant, {"surfels": renderer.num_points, "segments": S})
 
     return hulls
@@ -212,8 +215,10 @@ class _HullSweep(FootprintSweep):
         """Segments per batch."""
         return max(1, HULL_BATCH_ELEMENTS // max(1, self.P))
 
-    def segments(self, g) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``lo, hi`` (B, h, w, 3) float32 and ``constant`` (B, h, w) of the segments of the grid ``g``."""
+    def segments(self, g, keep=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``lo, hi`` (B, h, w, 3) float32 and ``constant`` (B, h, w) of the segments of the grid ``g``;
+        ``keep = (covers, s)``: their first surely covering surfels and candidates go to that
+        :class:`SegmentCovers` as its segments ``s ..``."""
         r = self.r
         g = np.asarray(g, dtype=np.float64)
         B, P = len(g) - 1, self.P
@@ -227,6 +232,8 @@ class _HullSweep(FootprintSweep):
         sure_first, q, cp = first_covers(lambda: self.union(float(g[0]), float(g[-1])), lambda sub: _segment_boxes(*self.ranges(g, sub), H, W),
                                          B, EDGE_EPS, -EDGE_EPS, r.rank, r.samples, covered_pairs, candidates=True, policy=self.policy)
         sure_first = sure_first.view(-1)
+        if keep is not None:
+            keep[0].add(keep[1], sure_first, q, cp)
         # the values of the native pixels: the renderer's own float32 colours (and its uncovered value of
         # each pixel where no surfel surely covers it), their least and greatest per channel exactly
         col = r.colors
@@ -256,6 +263,94 @@ class _HullSweep(FootprintSweep):
         return (lo_o.cpu().numpy().astype(np.float32), hi_o.cpu().numpy().astype(np.float32), one.cpu().numpy())
 
 
+class SegmentCovers:
+    """What decided the bounds of every segment of a grid, per native pixel: the first surfel (its rank;
+    ``P``: none) surely covering it throughout the segment and the candidates, every surfel that may
+    cover it somewhere in the segment, up to that one (:func:`.surfel_cover.first_covers`). Kept to decide
+    the renderer's frames at poses inside the grid (the grid's refinement) from them instead of from every
+    surfel (:meth:`render_batch`).
+
+    Why they are the renderer's frames bit for bit: at a pose inside a segment, a surfel the renderer finds
+    covering a pixel (its footprint at that pose, the pixel range and box tests of
+    :func:`.surfel.covered_pairs`, drawn there) has its footprint inside its sweep box over the segment and
+    may be drawn there, so it is an outer pair of the segment; the first surely covering surfel covers the
+    pixel at every pose of the segment and hides every later one. The pixel's winner is thus the least rank
+    of the first surely covering surfel and of the candidates before it that the renderer's own tests find
+    covering at the pose (the same tensors: the footprints of a subset are those of the whole, bit for bit;
+    ``P``: nothing covers). Both are the soundness of the bounds themselves (docs/imaging.md, the sweep box
+    and the sure box). Only the candidates before the first surely covering surfel are kept."""
+
+    def __init__(self, renderer: SurfelRenderer, grid):
+        self.r = renderer
+        self.grid = np.asarray(grid, dtype=np.float64)
+        S, HW = len(self.grid) - 1, renderer.intr.height * renderer.intr.width
+        self.first = torch.empty((S, HW), dtype=torch.int32, device=renderer.device)
+        self._parts: list[tuple[torch.Tensor, torch.Tensor]] = []
+        self.where = self.point = self.starts = None
+
+    @staticmethod
+    def nbytes(renderer: SurfelRenderer, grid) -> int:
+        """About what the covers of ``grid`` hold before their candidates (4 bytes per segment and native pixel)."""
+        return 4 * (len(grid) - 1) * renderer.intr.height * renderer.intr.width
+
+    def add(self, s: int, sure_first: torch.Tensor, q: torch.Tensor, cp: torch.Tensor) -> None:
+        """Segments ``s ..``: ``sure_first`` (B H W,) ranks, candidates ``(q, cp)`` with ``q`` counted from segment ``s``."""
+        HW = self.first.shape[1]
+        B = len(sure_first) // HW
+        self.first[s:s + B] = sure_first.view(B, HW)
+        before = self.r.rank[cp] < sure_first[q]   # the first surely covering surfel itself needs no test
+        self._parts.append((q[before] + s * HW, cp[before]))
+
+    def close(self) -> None:
+        """The candidates of every segment in order (where = segment * H * W + pixel)."""
+        S, HW = self.first.shape
+        dev = self.first.device
+        where = torch.cat([w for w, _ in self._parts]) if self._parts else torch.zeros(0, dtype=torch.long, device=dev)
+        point = torch.cat([p for _, p in self._parts]) if self._parts else torch.zeros(0, dtype=torch.long, device=dev)
+        order = torch.argsort(where)
+        self.where, self.point, self._parts = where[order], point[order], []
+        self.starts = torch.searchsorted(self.where, torch.arange(S + 1, device=dev) * HW).tolist()
+
+    def winners(self, alpha: float) -> torch.Tensor:
+        """The surfel index each native pixel shows at ``alpha`` (inside the grid), (H W,): the renderer's."""
+        r, g = self.r, self.grid
+        require(g[0] <= alpha <= g[-1], f"alpha {alpha!r} outside the grid [{g[0]!r}, {g[-1]!r}]")
+        HW = self.first.shape[1]
+        k = int(min(len(g) - 2, max(0, np.searchsorted(g, alpha, side="right") - 1)))
+        rank = self.first[k].long()
+        a, b = self.starts[k], self.starts[k + 1]
+        if b > a:
+            q, cp = self.where[a:b] - k * HW, self.point[a:b]
+            subset, loc = torch.unique(cp, sorted=True, return_inverse=True)
+            umin, umax, vmin, vmax, _, drawn = (x[0] for x in r.footprints(torch.tensor([alpha], dtype=torch.float64, device=r.device), subset))
+            c0, c1, r0, r1 = pixel_range(umin, umax, vmin, vmax, r.samples, 0.0)
+            W = r.samples.W
+            col, row = q % W, torch.div(q, W, rounding_mode="floor")
+            su, sv = r.samples.su[q], r.samples.sv[q]
+            ok = (drawn[loc] & (c0[loc] <= col) & (col < c1[loc]) & (r0[loc] <= row) & (row < r1[loc])
+                  & (umin[loc] <= su) & (su < umax[loc]) & (vmin[loc] <= sv) & (sv < vmax[loc]))
+            rank.scatter_reduce_(0, q[ok], r.rank[cp[ok]], "amin", include_self=True)
+        return r.by_rank[rank]
+
+    @property
+    def P(self) -> int:
+        return self.r.num_points
+
+    def render_batch(self, alphas) -> torch.Tensor:
+        """The renderer's ``render_batch(alphas)`` for poses inside the grid, decided from the covers."""
+        r = self.r
+        H, W = r.intr.height, r.intr.width
+        a = np.asarray(alphas, dtype=np.float64).reshape(-1)
+        out = []
+        for s in range(0, len(a), r.chunk_size):
+            idx = torch.stack([self.winners(float(x)) for x in a[s:s + r.chunk_size]]).view(-1, H, W)
+            out.append(reduce_frames(r._shade(idx), r.imaging))
+        if not out:
+            h, w = r.imaging.out_shape
+            return torch.empty((0, h, w, 3), dtype=torch.float32, device=r.device)
+        return torch.cat(out)
+
+
 def _segment_boxes(u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi, H: int, W: int):
     """Per segment and surfel (:meth:`.surfel.FootprintSweep.ranges`) the sweep box (where the footprint can be),
     whether it may be drawn, the sure box (where it surely is) and whether it is surely drawn, each (B, P)."""
@@ -272,4 +367,4 @@ def _segment_boxes(u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi, H: int, W: int):
     return sweep, maybe, sure, sure_drawn
 
 
-__all__ = ["HullValues", "hulls_within", "render_plan_surfel", "segment_hulls"]
+__all__ = ["HullValues", "SegmentCovers", "hulls_within", "render_plan_surfel", "segment_hulls"]
