@@ -277,8 +277,10 @@ class SegmentCovers:
     pixel at every pose of the segment and hides every later one. The pixel's winner is thus the least rank
     of the first surely covering surfel and of the candidates before it that the renderer's own tests find
     covering at the pose (the same tensors: the footprints of a subset are those of the whole, bit for bit;
-    ``P``: nothing covers). Both are the soundness of the bounds themselves (docs/imaging.md, the sweep box
-    and the sure box). Only the candidates before the first surely covering surfel are kept."""
+    ``P``: nothing covers). Both are the soundness of the bounds themselves (the module doc: footprint ranges
+    read at the segment's ends and split points, widened by ``EDGE_EPS``). Only the candidates before the
+    first surely covering surfel are kept; frames from them are compared with the renderer's in
+    test_surfel_cover.py, and the certificates before and after in docs/timings.md (session 18)."""
 
     def __init__(self, renderer: SurfelRenderer, grid):
         self.r = renderer
