@@ -87,6 +87,9 @@ def test_ranges_of_a_subset_are_those_of_the_whole(axis):
     fp, fs = r.footprints(torch.as_tensor(g)), r.footprints(torch.as_tensor(g), sub)
     for x, y in zip(fp, fs):
         assert torch.equal(x[..., sub], y)
+    for i in range(len(g)):   # one pose of a subset (surfel_bounds.SegmentCovers) against a batch of every surfel
+        for x, y in zip(fp, r.footprints(torch.as_tensor(g[i:i + 1]), sub)):
+            assert torch.equal(x[i:i + 1, sub], y)
 
 
 def test_union_holds_every_footprint_and_sweep_box():
@@ -106,49 +109,3 @@ def test_union_holds_every_footprint_and_sweep_box():
         inside = ~imask | (drawn & (umin <= I[0]) & (I[1] <= umax) & (vmin <= I[2]) & (I[3] <= vmax))
         assert bool(inside.all())
 
-
-@pytest.mark.parametrize("axis", ["tx", "ty", "tz", "rx", "ry", "rz"])
-@pytest.mark.parametrize("enumerated", [False, True])
-def test_frames_from_the_covers_of_a_grid_are_the_renderers(monkeypatch, axis, enumerated):
-    """Poses inside a bounded grid (interior points, grid points, both ends, ulp neighbours of grid points)
-    rendered from the grid's SegmentCovers: the renderer's frames bit for bit, whether the bounds took the union
-    path or enumerated every segment; and the covers hold only candidates before the first surely covering surfel."""
-    from pws_ros.core.surfel_bounds import SegmentCovers
-
-    rng = np.random.default_rng(11)
-    cloud = random_cloud(rng)
-    b = RADIUS[axis] * 2
-    im = make_imaging("surfel", CAM, (12, 16), render_factor=2, uncovered="frame")
-    if enumerated:
-        monkeypatch.setattr(cover, "range_implied", lambda samples: False)
-        monkeypatch.setattr(surfel_mod, "range_implied", lambda samples: False)
-    r = SurfelRenderer(cloud, im, axis, alpha_range=(-b, b))
-    grid = np.union1d(np.sort(rng.uniform(-b, b, 30)), [-b, 0.0, b])
-    covers = SegmentCovers(r, grid)
-    hulls_within(r, -b, b)(grid, covers)
-    kept = int(covers.where.numel())
-    assert kept > 0   # there are pixels to decide per pose
-    HW = CAM.height * CAM.width
-    seg, pix = covers.where // HW, covers.where % HW
-    assert bool((r.rank[covers.point] < covers.first[seg, pix].long()).all())
-    poses = np.concatenate([rng.uniform(-b, b, 40), grid, np.nextafter(grid[1:-1], np.inf), np.nextafter(grid[1:-1], -np.inf)])
-    np.testing.assert_array_equal(covers.render_batch(poses).numpy(), r.render_batch(poses).numpy())
-    with pytest.raises(Exception, match="outside the grid"):
-        covers.render_batch([b * 1.5])
-
-
-def test_frames_from_covers_differ_when_a_candidate_is_lost():
-    """The comparison above can fail: without the candidates the frames differ from the renderer's."""
-    from pws_ros.core.surfel_bounds import SegmentCovers
-
-    rng = np.random.default_rng(11)
-    cloud = random_cloud(rng)
-    b = RADIUS["tz"] * 2
-    im = make_imaging("surfel", CAM, (12, 16), render_factor=2, uncovered="frame")
-    r = SurfelRenderer(cloud, im, "tz", alpha_range=(-b, b))
-    grid = np.linspace(-b, b, 7)
-    covers = SegmentCovers(r, grid)
-    hulls_within(r, -b, b)(grid, covers)
-    poses = (grid[:-1] + grid[1:]) / 2
-    covers.starts = [0] * len(covers.starts)
-    assert not np.array_equal(covers.render_batch(poses).numpy(), r.render_batch(poses).numpy())

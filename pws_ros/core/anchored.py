@@ -57,8 +57,10 @@ class _RendererGeometry:
 
     def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
                keep: tuple[float, float] | None = None, share: float = 1.0) -> tuple[Plan, np.ndarray]:
+        covers = self._covers
+        inside = covers is not None and covers.grid[0] <= plan.alphas[0] and plan.alphas[-1] <= covers.grid[-1]
         return refine_for_target(self.renderer, plan, frames, target, max_anchors, self.config, keep=keep, share=share,
-                                 render=None if self._covers is None else self._covers.render_batch)
+                                 render=covers.render_batch if inside else None)
 
     def bounds(self, plan: Plan):
         # one sweep over the plan's range bounds its grid here, the new segments of a refinement of it (the
@@ -66,12 +68,14 @@ class _RendererGeometry:
         g = plan.alphas
         if self._last is None or (self._last[0][0], self._last[0][-1]) != (g[0], g[-1]):
             self._bounds_of = hulls_within(self.renderer, float(g[0]), float(g[-1]), max_bytes=bounds_bytes(self.config))
-            # the grid's first surely covering surfels and candidates are kept (within COVERS_BYTES): the frames of a
-            # refinement of it, all inside its segments, are decided from them (.surfel_bounds.SegmentCovers)
-            covers = SegmentCovers(self.renderer, g) if SegmentCovers.nbytes(self.renderer, g) <= COVERS_BYTES else None
-            self._last = (g, self._bounds_of(g, covers))
-            self._covers = covers
+            # the grid's first surely covering surfels and candidates are kept (within a quarter of the bounds' memory
+            # ceiling, at most COVERS_BYTES): the frames of a refinement of it, all inside its segments, are decided
+            # from them (.surfel_bounds.SegmentCovers)
+            covers = SegmentCovers(self.renderer, g, min(COVERS_BYTES, bounds_bytes(self.config) // 4))
+            self._last = (g, self._bounds_of(g, None if covers.dropped else covers))
+            self._covers = None if covers.dropped else covers
         elif not np.array_equal(self._last[0], g):
+            self._covers = None   # the refinement they served is rendered
             self._last = (g, refined_hulls(self._bounds_of, *self._last, g))
         return self._last[1]
 
@@ -105,7 +109,7 @@ class _FixedGeometry:
     frontier = None
 
 
-COVERS_BYTES = 256 * 2**20   # the most a grid's kept covers may take (4 bytes per segment and native pixel)
+COVERS_BYTES = 256 * 2**20   # the most a grid's kept covers may take (4 bytes per segment and native pixel, 16 per candidate)
 
 
 def grid_cap(imaging: Imaging, config: CertifyConfig) -> int:

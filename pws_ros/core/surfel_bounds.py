@@ -183,6 +183,7 @@ def hulls_within(renderer: SurfelRenderer, lo: float, hi: float, *, max_bytes: i
         require(len(g) >= 2 and lo <= g[0] and g[-1] <= hi and bool(np.all(np.diff(g) > 0)),
                 f"grid {g!r} is not increasing inside [{lo!r}, {hi!r}]")
         S = len(g) - 1
+        require(covers is None or np.array_equal(covers.grid, g), "internal: covers of another grid")
         need = 2 * S * h * w * 3 * 4
         require(need <= max_bytes, f"bounds of {S} segments at {w}x{h} need {need / 2**20:.0f} MiB, more than "
                                    f"{max_bytes / 2**20:.0f} MiB: use fewer partitions")
@@ -278,33 +279,41 @@ class SegmentCovers:
     of the first surely covering surfel and of the candidates before it that the renderer's own tests find
     covering at the pose (the same tensors: the footprints of a subset are those of the whole, bit for bit;
     ``P``: nothing covers). Both are the soundness of the bounds themselves (the module doc: footprint ranges
-    read at the segment's ends and split points, widened by ``EDGE_EPS``). Only the candidates before the
-    first surely covering surfel are kept; frames from them are compared with the renderer's in
-    test_surfel_cover.py, and the certificates before and after in docs/timings.md (session 18)."""
+    read at the segment's ends and split points, widened by ``EDGE_EPS``); and the footprints of a subset of
+    surfels at one pose are those the renderer computes for all of them at a batch of poses, bit for bit (its
+    own union path needs this too; test_surfel_cover.py). Only the candidates before the first surely
+    covering surfel are kept, within ``max_bytes`` (else nothing: ``dropped``, and the renderer renders).
+    Frames from them are compared with the renderer's in test_surfel_cover.py, the certificates before and
+    after in docs/timings.md (session 18)."""
 
-    def __init__(self, renderer: SurfelRenderer, grid):
+    def __init__(self, renderer: SurfelRenderer, grid, max_bytes: int):
         self.r = renderer
         self.grid = np.asarray(grid, dtype=np.float64)
+        self.max_bytes = int(max_bytes)
         S, HW = len(self.grid) - 1, renderer.intr.height * renderer.intr.width
-        self.first = torch.empty((S, HW), dtype=torch.int32, device=renderer.device)
+        self.used = 4 * S * HW     # bytes held: 4 per segment and native pixel, 16 per candidate
+        self.dropped = self.used > self.max_bytes   # nothing kept (the renderer renders then)
+        self.first = None if self.dropped else torch.empty((S, HW), dtype=torch.int32, device=renderer.device)
         self._parts: list[tuple[torch.Tensor, torch.Tensor]] = []
         self.where = self.point = self.starts = None
 
-    @staticmethod
-    def nbytes(renderer: SurfelRenderer, grid) -> int:
-        """About what the covers of ``grid`` hold before their candidates (4 bytes per segment and native pixel)."""
-        return 4 * (len(grid) - 1) * renderer.intr.height * renderer.intr.width
-
     def add(self, s: int, sure_first: torch.Tensor, q: torch.Tensor, cp: torch.Tensor) -> None:
         """Segments ``s ..``: ``sure_first`` (B H W,) ranks, candidates ``(q, cp)`` with ``q`` counted from segment ``s``."""
+        if self.dropped:
+            return
         HW = self.first.shape[1]
         B = len(sure_first) // HW
         self.first[s:s + B] = sure_first.view(B, HW)
         before = self.r.rank[cp] < sure_first[q]   # the first surely covering surfel itself needs no test
         self._parts.append((q[before] + s * HW, cp[before]))
+        self.used += 16 * int(before.sum())
+        if 3 * self.used > self.max_bytes:   # close() sorts the candidates: about three times their size at its peak
+            self.dropped, self.first, self._parts = True, None, []
 
     def close(self) -> None:
         """The candidates of every segment in order (where = segment * H * W + pixel)."""
+        if self.dropped:
+            return
         S, HW = self.first.shape
         dev = self.first.device
         where = torch.cat([w for w, _ in self._parts]) if self._parts else torch.zeros(0, dtype=torch.long, device=dev)
@@ -319,7 +328,7 @@ class SegmentCovers:
         require(g[0] <= alpha <= g[-1], f"alpha {alpha!r} outside the grid [{g[0]!r}, {g[-1]!r}]")
         HW = self.first.shape[1]
         k = int(min(len(g) - 2, max(0, np.searchsorted(g, alpha, side="right") - 1)))
-        rank = self.first[k].long()
+        rank = self.first[k].to(torch.long, copy=True)
         a, b = self.starts[k], self.starts[k + 1]
         if b > a:
             q, cp = self.where[a:b] - k * HW, self.point[a:b]
@@ -333,10 +342,6 @@ class SegmentCovers:
                   & (umin[loc] <= su) & (su < umax[loc]) & (vmin[loc] <= sv) & (sv < vmax[loc]))
             rank.scatter_reduce_(0, q[ok], r.rank[cp[ok]], "amin", include_self=True)
         return r.by_rank[rank]
-
-    @property
-    def P(self) -> int:
-        return self.r.num_points
 
     def render_batch(self, alphas) -> torch.Tensor:
         """The renderer's ``render_batch(alphas)`` for poses inside the grid, decided from the covers."""

@@ -1,0 +1,153 @@
+"""Frames at poses inside a bounded grid, decided from what bounded it (:class:`SegmentCovers`), are the
+renderer's bit for bit: on random clouds (holes, ulp duplicates, points near the camera plane and behind it),
+every axis, with the bounds' union path (several batches) and their enumeration, at poses inside segments,
+on grid points, one ulp either side of them and at both ends; a lost candidate shows; a budget too small
+keeps nothing; and the certificates of the anchors' path are those of rendering every refinement pose."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+import pws_ros.core.anchored as anchored
+import pws_ros.core.surfel as surfel_mod
+import pws_ros.core.surfel_bounds as sb
+import pws_ros.core.surfel_cover as cover
+from pws_ros.core.camera import CameraIntrinsics
+from pws_ros.core.certify import CertifyConfig, certify
+from pws_ros.core.cloud import cloud_from_rgbd
+from pws_ros.core.errors import PwsError
+from pws_ros.core.imaging import SurfelRenderer, hulls_within, make_imaging
+from pws_ros.core.surfel_bounds import SegmentCovers
+from pws_ros.replay.ceiling import never_changing_model
+from test_surfel_cover import CAM, RADIUS, random_cloud
+
+BIG = 1 << 30
+
+
+def _grid_and_covers(axis, seed, scale=2.0, points=30):
+    rng = np.random.default_rng(seed)
+    cloud = random_cloud(rng)
+    b = RADIUS[axis] * scale
+    im = make_imaging("surfel", CAM, (12, 16), render_factor=2, uncovered="frame")
+    r = SurfelRenderer(cloud, im, axis, alpha_range=(-b, b))
+    grid = np.union1d(np.sort(rng.uniform(-b, b, points)), [-b, 0.0, b])
+    covers = SegmentCovers(r, grid, BIG)
+    hulls_within(r, -b, b)(grid, covers)
+    return rng, r, grid, covers
+
+
+def _poses(rng, grid):
+    b = grid[-1]
+    return np.concatenate([rng.uniform(-b, b, 40), grid, np.nextafter(grid[1:-1], np.inf), np.nextafter(grid[1:-1], -np.inf)])
+
+
+def _count_enumerations(monkeypatch):
+    calls = []
+    ref = cover.reference_first_covers
+    monkeypatch.setattr(cover, "reference_first_covers", lambda *a, **k: calls.append(1) or ref(*a, **k))
+    return calls
+
+
+@pytest.mark.parametrize("axis", ["tx", "ty", "tz", "rx", "ry", "rz"])
+def test_frames_from_covers_of_enumerated_bounds(monkeypatch, axis):
+    monkeypatch.setattr(cover, "range_implied", lambda samples: False)
+    monkeypatch.setattr(surfel_mod, "range_implied", lambda samples: False)
+    rng, r, grid, covers = _grid_and_covers(axis, 11)
+    assert covers.where.numel() > 0 and not covers.dropped
+    HW = CAM.height * CAM.width
+    seg, pix = covers.where // HW, covers.where % HW
+    assert bool((r.rank[covers.point] < covers.first[seg, pix].long()).all())   # only those before the first
+    poses = _poses(rng, grid)
+    np.testing.assert_array_equal(covers.render_batch(poses).numpy(), r.render_batch(poses).numpy())
+
+
+@pytest.mark.parametrize("axis", ["tx", "ty", "tz", "rx", "ry", "rz"])
+def test_frames_from_covers_of_union_bounds_in_several_batches(monkeypatch, axis):
+    """The union path forced on and batches of a few segments (candidates of segment s > 0 offset right)."""
+    monkeypatch.setattr(cover, "MOTION_LIMIT", float("inf"))
+    monkeypatch.setattr(cover, "DYNAMIC_SHARE", float("inf"))
+    monkeypatch.setattr(sb, "HULL_BATCH_ELEMENTS", 3000)
+    calls = _count_enumerations(monkeypatch)
+    rng, r, grid, covers = _grid_and_covers(axis, 7)
+    assert calls == [] and len(grid) - 1 > 3 * max(1, 3000 // r.num_points)   # the union path, several batches
+    calls.clear()
+    poses = _poses(rng, grid)
+    np.testing.assert_array_equal(covers.render_batch(poses).numpy(), r.render_batch(poses).numpy())
+    for x in (np.nextafter(grid[0], -np.inf), np.nextafter(grid[-1], np.inf), 2 * grid[-1]):
+        with pytest.raises(PwsError, match="outside the grid"):
+            covers.render_batch([x])
+
+
+def test_a_lost_candidate_shows():
+    """The comparisons above can fail: one segment's candidates dropped, its poses differ from the renderer's."""
+    rng, r, grid, covers = _grid_and_covers("tz", 11)
+    counts = np.diff(covers.starts)
+    k = int(np.argmax(counts))
+    assert counts[k] > 0
+    poses = grid[k] + (grid[k + 1] - grid[k]) * np.linspace(0.0, 1.0, 11)
+    np.testing.assert_array_equal(covers.render_batch(poses).numpy(), r.render_batch(poses).numpy())
+    a, b = covers.starts[k], covers.starts[k + 1]
+    keep = np.r_[np.arange(a), np.arange(b, len(covers.where))]
+    covers.where, covers.point = covers.where[keep], covers.point[keep]
+    covers.starts = [s if i <= k else s - (b - a) for i, s in enumerate(covers.starts)]
+    assert not np.array_equal(covers.render_batch(poses).numpy(), r.render_batch(poses).numpy())
+
+
+def test_a_budget_too_small_keeps_nothing():
+    rng = np.random.default_rng(3)
+    cloud = random_cloud(rng)
+    b = RADIUS["tz"] * 2
+    im = make_imaging("surfel", CAM, (12, 16), render_factor=2)
+    r = SurfelRenderer(cloud, im, "tz", alpha_range=(-b, b))
+    grid = np.linspace(-b, b, 9)
+    first_only = 4 * 8 * CAM.height * CAM.width
+    assert SegmentCovers(r, grid, first_only - 1).dropped
+    covers = SegmentCovers(r, grid, first_only + 16)   # room for the first ranks, not for the candidates
+    h = hulls_within(r, -b, b)(grid, covers)
+    assert covers.dropped and covers.first is None
+    ref = hulls_within(r, -b, b)(grid)
+    assert np.array_equal(h.lo, ref.lo) and np.array_equal(h.hi, ref.hi)
+    with pytest.raises(PwsError, match="another grid"):
+        hulls_within(r, -b, b)(grid[:-1], SegmentCovers(r, grid, BIG))
+
+
+def _scene(seed: int):
+    """A 32x24 camera, a wall and boxes in 4x4 colour blocks (test_anchor_budgets' frames)."""
+    rng = np.random.default_rng(seed)
+    W, H = 32, 24
+    cam = CameraIntrinsics(W, H, 30.0, 30.0, (W - 1) / 2, (H - 1) / 2, "cam")
+    depth = np.full((H, W), rng.uniform(1.5, 3.0))
+    for _ in range(rng.integers(1, 4)):
+        x0, y0 = rng.integers(0, W - 4), rng.integers(0, H - 4)
+        depth[y0:y0 + rng.integers(3, H // 2), x0:x0 + rng.integers(3, W // 2)] = rng.uniform(0.6, 1.4)
+    depth[rng.random((H, W)) < 0.05] = 0.0
+    colour = np.kron(rng.random((H // 4 + 1, W // 4 + 1, 3)), np.ones((4, 4, 1)))[:H, :W].astype(np.float32)
+    return cam, cloud_from_rgbd(depth, colour, cam)
+
+
+def _fields(cert):
+    d = cert.to_dict()
+    d.pop("timings")
+    return d
+
+
+def test_the_anchors_path_certifies_as_when_every_pose_is_rendered(monkeypatch):
+    """Where the first placement falls short, the refinement's frames come from the covers; the certificates
+    are those of rendering them (COVERS_BYTES = 0: nothing kept)."""
+    used = []
+    render_batch = SegmentCovers.render_batch
+    monkeypatch.setattr(SegmentCovers, "render_batch", lambda self, a: used.append(len(a)) or render_batch(self, a))
+    cases = [(seed, axis, radius) for seed in (0, 1) for axis, radius in (("tz", 0.4), ("ry", 0.08))]
+    for seed, axis, radius in cases:
+        cam, cloud = _scene(seed)
+        im = make_imaging("surfel", cam, (12, 16), background=0.0, border=0)
+        model = never_changing_model(im.out_shape)
+        cfg = CertifyConfig(sigma=0.5, n0=64, n=256, alpha=0.01, num_anchors=8, border=0, seed=seed)
+        with_covers = certify(cloud, cam, model, axis, radius, "pws_of", cfg, imaging=im)
+        monkeypatch.setattr(anchored, "COVERS_BYTES", 0)
+        rendered = certify(cloud, cam, model, axis, radius, "pws_of", replace(cfg), imaging=im)
+        monkeypatch.setattr(anchored, "COVERS_BYTES", 256 * 2**20)
+        assert with_covers.status != "error" and _fields(with_covers) == _fields(rendered), (seed, axis)
+    assert len(used) >= 2 and sum(used) > 0   # the covers did render (a second refinement happened)
