@@ -151,3 +151,22 @@ def test_the_anchors_path_certifies_as_when_every_pose_is_rendered(monkeypatch):
         monkeypatch.setattr(anchored, "COVERS_BYTES", 256 * 2**20)
         assert with_covers.status != "error" and _fields(with_covers) == _fields(rendered), (seed, axis)
     assert len(used) >= 2 and sum(used) > 0   # the covers did render (a second refinement happened)
+
+
+@pytest.mark.parametrize("axis", ["tz", "ry", "rz"])
+def test_union_and_enumeration_keep_the_same_covers(monkeypatch, axis):
+    """The candidates before the first surely covering surfel, per segment and pixel, are one set whichever
+    path bounded the grid (the bounds' tests compare only their values)."""
+    monkeypatch.setattr(cover, "MOTION_LIMIT", float("inf"))
+    monkeypatch.setattr(cover, "DYNAMIC_SHARE", float("inf"))
+    monkeypatch.setattr(sb, "HULL_BATCH_ELEMENTS", 3000)
+    calls = _count_enumerations(monkeypatch)
+    _, _, _, union = _grid_and_covers(axis, 5)
+    assert calls == []
+    monkeypatch.setattr(cover, "range_implied", lambda samples: False)
+    monkeypatch.setattr(surfel_mod, "range_implied", lambda samples: False)
+    _, _, _, enumerated = _grid_and_covers(axis, 5)
+    assert calls and union.where.numel() > 0
+    assert np.array_equal(union.first.numpy(), enumerated.first.numpy())
+    pairs = [sorted(zip(c.where.tolist(), c.point.tolist())) for c in (union, enumerated)]
+    assert pairs[0] == pairs[1]
