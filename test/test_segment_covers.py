@@ -14,13 +14,12 @@ import pws_ros.core.anchored as anchored
 import pws_ros.core.surfel as surfel_mod
 import pws_ros.core.surfel_bounds as sb
 import pws_ros.core.surfel_cover as cover
-from pws_ros.core.camera import CameraIntrinsics
 from pws_ros.core.certify import CertifyConfig, certify
-from pws_ros.core.cloud import cloud_from_rgbd
 from pws_ros.core.errors import PwsError
 from pws_ros.core.imaging import SurfelRenderer, hulls_within, make_imaging
 from pws_ros.core.surfel_bounds import SegmentCovers
 from pws_ros.replay.ceiling import never_changing_model
+from test_anchor_budgets import _scene
 from test_surfel_cover import CAM, RADIUS, random_cloud
 
 BIG = 1 << 30
@@ -113,20 +112,6 @@ def test_a_budget_too_small_keeps_nothing():
         hulls_within(r, -b, b)(grid[:-1], SegmentCovers(r, grid, BIG))
 
 
-def _scene(seed: int):
-    """A 32x24 camera, a wall and boxes in 4x4 colour blocks (test_anchor_budgets' frames)."""
-    rng = np.random.default_rng(seed)
-    W, H = 32, 24
-    cam = CameraIntrinsics(W, H, 30.0, 30.0, (W - 1) / 2, (H - 1) / 2, "cam")
-    depth = np.full((H, W), rng.uniform(1.5, 3.0))
-    for _ in range(rng.integers(1, 4)):
-        x0, y0 = rng.integers(0, W - 4), rng.integers(0, H - 4)
-        depth[y0:y0 + rng.integers(3, H // 2), x0:x0 + rng.integers(3, W // 2)] = rng.uniform(0.6, 1.4)
-    depth[rng.random((H, W)) < 0.05] = 0.0
-    colour = np.kron(rng.random((H // 4 + 1, W // 4 + 1, 3)), np.ones((4, 4, 1)))[:H, :W].astype(np.float32)
-    return cam, cloud_from_rgbd(depth, colour, cam)
-
-
 def _fields(cert):
     d = cert.to_dict()
     d.pop("timings")
@@ -141,7 +126,7 @@ def test_the_anchors_path_certifies_as_when_every_pose_is_rendered(monkeypatch):
     monkeypatch.setattr(SegmentCovers, "render_batch", lambda self, a: used.append(len(a)) or render_batch(self, a))
     cases = [(seed, axis, radius) for seed in (0, 1) for axis, radius in (("tz", 0.4), ("ry", 0.08))]
     for seed, axis, radius in cases:
-        cam, cloud = _scene(seed)
+        cam, cloud, _, _ = _scene(seed)   # its own axis and radius aside
         im = make_imaging("surfel", cam, (12, 16), background=0.0, border=0)
         model = never_changing_model(im.out_shape)
         cfg = CertifyConfig(sigma=0.5, n0=64, n=256, alpha=0.01, num_anchors=8, border=0, seed=seed)

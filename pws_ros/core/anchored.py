@@ -72,7 +72,7 @@ class _RendererGeometry:
             # ceiling, at most COVERS_BYTES): the frames of a refinement of it, all inside its segments, are decided
             # from them (.surfel_bounds.SegmentCovers)
             covers = SegmentCovers(self.renderer, g, min(COVERS_BYTES, bounds_bytes(self.config) // 4))
-            self._last = (g, self._bounds_of(g, None if covers.dropped else covers))
+            self._last = (g, self._bounds_of(g, covers))
             self._covers = None if covers.dropped else covers
         elif not np.array_equal(self._last[0], g):
             self._covers = None   # the refinement they served is rendered

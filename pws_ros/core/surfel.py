@@ -128,10 +128,7 @@ class SurfelRenderer:
         # the covering surfel first in occlusion order (the least rank, see _set_points)
         sweep = self._sweep_for(alphas)
         if sweep is None:
-            umin, umax, vmin, vmax, zc, drawn = self.footprints(alphas)
-            p_i, where, _ = covered_pairs(umin, umax, vmin, vmax, drawn, self.samples, 0.0)
-            idx.scatter_reduce_(0, where, self.rank[p_i], reduce="amin", include_self=True)
-            return self.by_rank[idx].view(B, H, W)
+            return self.by_rank[self.least_covering(alphas, idx)].view(B, H, W)
 
         def boxes_at(alphas, subset):   # the footprints at every pose, inner box = outer box
             umin, umax, vmin, vmax, zc, drawn = self.footprints(alphas, subset)
@@ -144,6 +141,13 @@ class SurfelRenderer:
             out.append(first_covers(union, lambda sub: boxes_at(a, sub), len(a), 0.0, 0.0, self.rank, self.samples,
                                     covered_pairs, policy=self._policy))
         return self.by_rank[torch.cat(out)].view(B, H, W)
+
+    def least_covering(self, alphas: torch.Tensor, ranks: torch.Tensor, subset: torch.Tensor | None = None) -> torch.Tensor:
+        """``ranks`` (B H W,) lowered in place, per pose and native pixel, to the rank of every surfel (of the sorted
+        index tensor ``subset``, None: all) covering it there (:func:`covered_pairs`, the footprints at the poses)."""
+        umin, umax, vmin, vmax, zc, drawn = self.footprints(alphas, subset)
+        p_i, where, _ = covered_pairs(umin, umax, vmin, vmax, drawn, self.samples, 0.0)
+        return ranks.scatter_reduce_(0, where, self.rank[p_i if subset is None else subset[p_i]], reduce="amin", include_self=True)
 
     def _sweep_for(self, alphas: torch.Tensor):
         """The footprint sweep over the renderer's motion range when it holds ``alphas`` and several poses are
@@ -168,10 +172,13 @@ class SurfelRenderer:
                           for s in range(0, len(a), self.chunk_size)]) if len(a) else \
             torch.empty((0, self.intr.height, self.intr.width, 3), dtype=torch.float32, device=self.device)
 
-    def render_batch(self, alphas) -> torch.Tensor:
-        """Frames ``(B, H, W, 3)`` float32 as handed to the noise (reduced, border masked)."""
+    def render_batch(self, alphas, winners=None) -> torch.Tensor:
+        """Frames ``(B, H, W, 3)`` float32 as handed to the noise (reduced, border masked); ``winners(alphas)``:
+        the surfel index each native pixel shows, (B, Hn, Wn) (default the renderer's own; the same from
+        :class:`.surfel_bounds.SegmentCovers`)."""
         a = _alphas(alphas, self.device)
-        out = [reduce_frames(self._shade(self._winners(a[s:s + self.chunk_size])), self.imaging)
+        winners = winners or self._winners
+        out = [reduce_frames(self._shade(winners(a[s:s + self.chunk_size])), self.imaging)
                for s in range(0, len(a), self.chunk_size)]
         if not out:
             h, w = self.imaging.out_shape
@@ -286,16 +293,6 @@ class SamplePoints:
         self.sv = torch.as_tensor((r + 0.5 + jy).reshape(-1), device=device)
 
 
-def pixel_range(umin, umax, vmin, vmax, samples: SamplePoints, eps: float):
-    """The pixels :func:`covered_pairs` tests for a box widened by ``eps``, those whose sample can lie in it:
-    columns ``c0 <= c < c1``, rows ``r0 <= r < r1`` (long tensors shaped as the box edges)."""
-    W, H = samples.W, samples.H
-    return (torch.ceil(umin - (eps + 0.5 + SAMPLE_JITTER)).clamp_(0, W).long(),
-            torch.ceil(umax + (eps - 0.5 + SAMPLE_JITTER)).clamp_(0, W).long(),
-            torch.ceil(vmin - (eps + 0.5 + SAMPLE_JITTER)).clamp_(0, H).long(),
-            torch.ceil(vmax + (eps - 0.5 + SAMPLE_JITTER)).clamp_(0, H).long())
-
-
 def covered_pairs(umin, umax, vmin, vmax, mask, samples: SamplePoints, eps: float, inner=None):
     """``(point, where, inside)`` of every native pixel whose sample point lies in the box
     ``[umin - eps, umax + eps) x [vmin - eps, vmax + eps)`` of a point where ``mask`` (arrays (B, P);
@@ -305,7 +302,11 @@ def covered_pairs(umin, umax, vmin, vmax, mask, samples: SamplePoints, eps: floa
     W, H = samples.W, samples.H
     B, P = umin.shape
     dev = umin.device
-    c0, c1, r0, r1 = (x.view(-1) for x in pixel_range(umin, umax, vmin, vmax, samples, eps))
+    # the pixels whose sample can lie in the box: columns c0 <= c < c1, rows r0 <= r < r1
+    c0 = torch.ceil(umin - (eps + 0.5 + SAMPLE_JITTER)).clamp_(0, W).long().view(-1)
+    c1 = torch.ceil(umax + (eps - 0.5 + SAMPLE_JITTER)).clamp_(0, W).long().view(-1)
+    r0 = torch.ceil(vmin - (eps + 0.5 + SAMPLE_JITTER)).clamp_(0, H).long().view(-1)
+    r1 = torch.ceil(vmax + (eps - 0.5 + SAMPLE_JITTER)).clamp_(0, H).long().view(-1)
     nc, nr = c1.sub_(c0).clamp_(min=0), r1.sub_(r0).clamp_(min=0)   # (a NaN edge: no pixel, not an overflow)
     live = mask.reshape(-1) & (nc > 0) & (nr > 0)
     base = r0.mul_(W).add_(c0)
@@ -452,4 +453,4 @@ class FootprintSweep:
 
 
 __all__ = ["FootprintSweep", "SamplePoints", "SurfelRenderer", "bin_cloud", "covered_pairs", "occlusion_key",
-           "pixel_range", "surfel_corners"]
+           "surfel_corners"]

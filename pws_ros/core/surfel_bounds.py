@@ -24,9 +24,9 @@ import torch
 
 from .cloud import Cloud
 from .errors import require
-from .framing import EDGE_EPS, SAFETY, VALUE_EPS, Imaging, block_mean64, reduce_frames
+from .framing import EDGE_EPS, SAFETY, VALUE_EPS, Imaging, block_mean64
 from .partition import validate_grid
-from .surfel import FootprintSweep, SurfelRenderer, covered_pairs, pixel_range
+from .surfel import FootprintSweep, SurfelRenderer, covered_pairs
 from .surfel_cover import UnionPolicy, first_covers
 
 
@@ -283,7 +283,7 @@ class SegmentCovers:
     surfels at one pose are those the renderer computes for all of them at a batch of poses, bit for bit (its
     own union path needs this too; test_surfel_cover.py). Only the candidates before the first surely
     covering surfel are kept, within ``max_bytes`` (else nothing: ``dropped``, and the renderer renders).
-    Frames from them are compared with the renderer's in test_surfel_cover.py, the certificates before and
+    Frames from them are compared with the renderer's in test_segment_covers.py, the certificates before and
     after in docs/timings.md (session 18)."""
 
     def __init__(self, renderer: SurfelRenderer, grid, max_bytes: int):
@@ -322,40 +322,27 @@ class SegmentCovers:
         self.where, self.point, self._parts = where[order], point[order], []
         self.starts = torch.searchsorted(self.where, torch.arange(S + 1, device=dev) * HW).tolist()
 
-    def winners(self, alpha: float) -> torch.Tensor:
-        """The surfel index each native pixel shows at ``alpha`` (inside the grid), (H W,): the renderer's."""
+    def winners(self, alphas: torch.Tensor) -> torch.Tensor:
+        """The surfel index each native pixel shows at ``alphas`` (inside the grid), (B, H, W): the renderer's.
+        Per segment, its first surely covering ranks lowered to those of its candidates' surfels covering
+        the pixel at the pose (any other pixel such a surfel covers has its first before it)."""
         r, g = self.r, self.grid
-        require(g[0] <= alpha <= g[-1], f"alpha {alpha!r} outside the grid [{g[0]!r}, {g[-1]!r}]")
-        HW = self.first.shape[1]
-        k = int(min(len(g) - 2, max(0, np.searchsorted(g, alpha, side="right") - 1)))
-        rank = self.first[k].to(torch.long, copy=True)
-        a, b = self.starts[k], self.starts[k + 1]
-        if b > a:
-            q, cp = self.where[a:b] - k * HW, self.point[a:b]
-            subset, loc = torch.unique(cp, sorted=True, return_inverse=True)
-            umin, umax, vmin, vmax, _, drawn = (x[0] for x in r.footprints(torch.tensor([alpha], dtype=torch.float64, device=r.device), subset))
-            c0, c1, r0, r1 = pixel_range(umin, umax, vmin, vmax, r.samples, 0.0)
-            W = r.samples.W
-            col, row = q % W, torch.div(q, W, rounding_mode="floor")
-            su, sv = r.samples.su[q], r.samples.sv[q]
-            ok = (drawn[loc] & (c0[loc] <= col) & (col < c1[loc]) & (r0[loc] <= row) & (row < r1[loc])
-                  & (umin[loc] <= su) & (su < umax[loc]) & (vmin[loc] <= sv) & (sv < vmax[loc]))
-            rank.scatter_reduce_(0, q[ok], r.rank[cp[ok]], "amin", include_self=True)
-        return r.by_rank[rank]
+        a = alphas.cpu().numpy()
+        require(bool(np.all((g[0] <= a) & (a <= g[-1]))), f"alphas {a!r} outside the grid [{g[0]!r}, {g[-1]!r}]")
+        B, HW = len(a), self.first.shape[1]
+        k = np.clip(np.searchsorted(g, a, side="right") - 1, 0, len(g) - 2)
+        ranks = self.first[torch.as_tensor(k, device=self.first.device)].to(torch.long)   # (B, HW), a copy
+        for kk in np.unique(k).tolist():
+            at = np.flatnonzero(k == kk)
+            subset = torch.unique(self.point[self.starts[kk]:self.starts[kk + 1]], sorted=True)
+            if len(subset):
+                sel = torch.as_tensor(at, device=ranks.device)
+                ranks[sel] = r.least_covering(alphas[sel], ranks[sel].reshape(-1), subset).view(len(at), HW)
+        return r.by_rank[ranks].view(B, r.intr.height, r.intr.width)
 
     def render_batch(self, alphas) -> torch.Tensor:
         """The renderer's ``render_batch(alphas)`` for poses inside the grid, decided from the covers."""
-        r = self.r
-        H, W = r.intr.height, r.intr.width
-        a = np.asarray(alphas, dtype=np.float64).reshape(-1)
-        out = []
-        for s in range(0, len(a), r.chunk_size):
-            idx = torch.stack([self.winners(float(x)) for x in a[s:s + r.chunk_size]]).view(-1, H, W)
-            out.append(reduce_frames(r._shade(idx), r.imaging))
-        if not out:
-            h, w = r.imaging.out_shape
-            return torch.empty((0, h, w, 3), dtype=torch.float32, device=r.device)
-        return torch.cat(out)
+        return self.r.render_batch(alphas, winners=self.winners)
 
 
 def _segment_boxes(u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi, H: int, W: int):
