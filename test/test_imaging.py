@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -154,10 +155,13 @@ def test_segment_bounds_hold_for_dense_alphas(seed, axis, ties, nseg, uncovered)
     for i in range(len(alphas) - 1):
         lo, hi = alphas[i], alphas[i + 1]
         poses = [lo, hi, np.nextafter(lo, hi), np.nextafter(hi, lo), *rng.uniform(lo, hi, 12)]
+        first = reference_frame(cloud.points, cloud.colors, im, axis, lo)
         for a in poses:
             f = reference_frame(cloud.points, cloud.colors, im, axis, a)
             assert np.all(f >= hulls.lo[i] - 1e-7) and np.all(f <= hulls.hi[i] + 1e-7), (axis, i, a)
             assert ((f - y) ** 2).sum() <= hulls.dist_sq(y)[i]
+            # a pixel the bounds call constant shows one value throughout the segment (the sparse form sends none)
+            np.testing.assert_array_equal(f[hulls.constant[i]], first[hulls.constant[i]])
 
 
 @settings(max_examples=20, deadline=None)
@@ -186,9 +190,11 @@ def test_large_footprints_and_long_sweeps_equal_the_brute_force(seed, axis, nseg
 
 def test_bounds_are_tight_where_nothing_changes():
     """A fronto-parallel wall moving along tz by a fraction of a pixel: the hull of each segment is the
-    two end frames (within float margins), not the background."""
+    two end frames (within float margins), not the background, and a pixel is called constant exactly
+    where it does not change."""
     cam = CameraIntrinsics(16, 12, 14.0, 14.0, 7.5, 5.5, "cam")
-    rgb = np.tile(np.linspace(0, 1, 16, dtype=np.float32)[None, :, None], (12, 1, 3))
+    rgb = np.full((12, 16, 3), 0.5, np.float32)
+    rgb[..., 0] = np.linspace(0, 1, 16, dtype=np.float32)   # neighbours differ in one channel only
     cloud = cloud_from_rgbd(np.full(cam.shape, 2.0), rgb, cam)
     im = make_imaging("surfel", cam, (6, 8), background=0.0, border=0)
     r = SurfelRenderer(cloud, im, "tz")
@@ -199,6 +205,11 @@ def test_bounds_are_tight_where_nothing_changes():
         ends_lo = np.minimum(frames[i], frames[i + 1])
         ends_hi = np.maximum(frames[i], frames[i + 1])
         assert np.all(hulls.lo[i] >= ends_lo - 1e-5) and np.all(hulls.hi[i] <= ends_hi + 1e-5)
+        # the pixels the bounds call constant are exactly those no brute-force frame of the segment changes (one
+        # pixel of the last segment, where a sample is handed over; the rest of the wall keeps its surfels)
+        f = np.stack([reference_frame(cloud.points, cloud.colors, im, "tz", a) for a in np.linspace(alphas[i], alphas[i + 1], 7)])
+        np.testing.assert_array_equal(hulls.constant[i], (f == f[0]).all(axis=(0, 3)))
+    assert not hulls.constant.all()
 
 
 def hulls_and_frames(seed: int, axis: str, radius: float, step: float):
@@ -395,6 +406,40 @@ def test_binned_rendering_and_bounds_equal_the_brute_force(seed, axis, ties, unc
         for a in [alphas[i], alphas[i + 1], *rng.uniform(alphas[i], alphas[i + 1], 6)]:
             f = reference_frame(r.points_np, r.colors_np, im, axis, a)
             assert np.all(f >= hulls.lo[i] - 1e-7) and np.all(f <= hulls.hi[i] + 1e-7), (axis, i, a)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), factor=st.integers(1, 3), spread=st.integers(0, 30), offset=st.sampled_from([0.0, 1e-6, -1e-6]))
+def test_block_mean_sums_float32_input_in_float64(seed, factor, spread, offset):
+    """The block mean of float32 native images (what the renderer and the bounds hand it) equals, bit for bit,
+    a plain float64 loop over each block in row-major order, divided by k^2, plus the offset; values of
+    very different magnitudes (exponents up to 2^spread apart), where a float32 sum would round."""
+    from pws_ros.core.framing import block_mean64
+    rng = np.random.default_rng(seed)
+    cam = CameraIntrinsics(16 * factor, 12 * factor, 7.0, 7.0, 3.5, 2.5, "cam")
+    im = make_imaging("surfel", cam, (6, 8), background=0.25, border=1, render_factor=factor)
+    k, (h, w) = im.factor, im.out_shape
+    x = (rng.random((2, h * k, w * k, 3)) * 2.0 ** rng.integers(-spread, 1, (2, h * k, w * k, 3))).astype(np.float32)
+    got = block_mean64(torch.as_tensor(x), im, offset).numpy()
+    want = np.empty((2, h, w, 3))
+    for b in range(2):
+        for r in range(h):
+            for c in range(w):
+                for ch in range(3):
+                    acc = 0.0
+                    for i in range(k):
+                        for j in range(k):
+                            acc += float(x[b, r * k + i, c * k + j, ch])
+                    want[b, r, c, ch] = acc / float(k * k)
+    bx, by = im.border
+    assert bx > 0 or by > 0
+    if bx:
+        want[:, :, :bx] = want[:, :, w - bx:] = 0.25
+    if by:
+        want[:, :by] = want[:, h - by:] = 0.25
+    assert got.dtype == np.float64
+    np.testing.assert_array_equal(got, want + offset)
+    np.testing.assert_array_equal(got, block_mean64(torch.as_tensor(x, dtype=torch.float64), im, offset).numpy())
 
 
 def test_binned_alpha_zero_frame_is_the_block_mean_of_the_camera_image():

@@ -303,23 +303,25 @@ def auto_border(im: Imaging, cloud: Cloud, radii: dict[str, float]) -> tuple[int
 
 def reduce_frames(native: torch.Tensor, imaging: Imaging) -> torch.Tensor:
     """Exact ``k x k`` block mean (float64, then float32) of native frames (B, Hn, Wn, 3) and the border."""
-    return block_mean64(native.to(torch.float64), imaging).to(torch.float32)
+    return block_mean64(native, imaging).to(torch.float32)
 
 
-def block_mean64(x: torch.Tensor, im: Imaging) -> torch.Tensor:
-    """Block mean of float64 native images (B, Hn, Wn, 3) to the output size, border set to background."""
+def block_mean64(x: torch.Tensor, im: Imaging, offset: float = 0.0) -> torch.Tensor:
+    """Block mean in float64 of native images (B, Hn, Wn, 3) to the output size, border set to background,
+    plus ``offset`` everywhere. ``x`` float32 or float64: every sum is taken in float64 (a float32 value
+    converts exactly), so both give the same result bit for bit."""
     k = im.factor
     h, w = im.out_shape
     if k > 1:  # the k*k strided slices summed in a fixed order (faster than a two-axis mean), then / k^2
         blocks = x.view(x.shape[0], h, k, w, k, 3)
-        out = blocks[:, :, 0, :, 0].clone()
+        out = blocks[:, :, 0, :, 0].to(torch.float64, copy=True)
         for i in range(k):
             for j in range(k):
                 if i or j:
                     out += blocks[:, :, i, :, j]
         out /= float(k * k)
     else:
-        out = x.clone()
+        out = x.to(torch.float64, copy=True)
     bx, by = im.border
     if bx:
         out[:, :, :bx] = im.background
@@ -327,6 +329,8 @@ def block_mean64(x: torch.Tensor, im: Imaging) -> torch.Tensor:
     if by:
         out[:, :by] = im.background
         out[:, h - by:] = im.background
+    if offset:
+        out += offset
     return out
 
 

@@ -210,6 +210,10 @@ class _HullSweep(FootprintSweep):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.policy = UnionPolicy()   # whether a batch tries the union first (.surfel_cover), per sweep
+        r = self.r
+        # rank -> the surfel's colour, then P + native pixel -> its uncovered value (:meth:`segments`)
+        self.values = torch.cat([r.colors.index_select(0, r.by_rank[:self.P]), r.uncovered])
+        require(bool(torch.isfinite(self.values).all()), "internal: a surfel or uncovered value that is not finite")
 
     @property
     def batch(self) -> int:
@@ -236,32 +240,35 @@ class _HullSweep(FootprintSweep):
         if keep is not None:
             keep[0].add(keep[1], sure_first, q, cp)
         # the values of the native pixels: the renderer's own float32 colours (and its uncovered value of
-        # each pixel where no surfel surely covers it), their least and greatest per channel exactly
-        col = r.colors
-        open_ = (sure_first == P)[:, None]
-        uncovered = r.uncovered.repeat(B, 1)                                               # (B HW, 3)
-        lo = torch.where(open_, uncovered, col[r.by_rank[sure_first]])
+        # each pixel where no surfel surely covers it), their least and greatest per channel exactly; one table
+        # row per rank (P + pixel: the pixel's uncovered value), so every pixel has a value
+        HW = H * W
+        at = torch.where(sure_first == P, torch.arange(HW, device=r.device).repeat(B) + P, sure_first)
+        lo = self.values.index_select(0, at)                                                # (B HW, 3)
         hi = lo.clone()
-        if len(cp):
-            idx = q[:, None].expand(-1, 3)
-            vals = col[cp]
-            lo.scatter_reduce_(0, idx, vals, reduce="amin", include_self=True)
-            hi.scatter_reduce_(0, idx, vals, reduce="amax", include_self=True)
-        # every pixel has a value (the background where open, its sure surfel otherwise: kept, the channels together)
-        require(bool(torch.isfinite(lo[:, 0]).all()), "internal: a pixel without any value")
         im = r.imaging
-        lo_o = block_mean64(lo.view(B, H, W, 3).to(torch.float64), im) - VALUE_EPS
-        hi_o = block_mean64(hi.view(B, H, W, 3).to(torch.float64), im) + VALUE_EPS
-        # output pixels whose every native pixel has one value throughout: bitwise constant over the segment
         k = im.factor
         h, w = im.out_shape
-        one = (lo == hi).all(dim=1).view(B, h, k, w, k).all(dim=4).all(dim=2)
+        # output pixels whose every native pixel has one value throughout (lo == hi: no candidate's colour differs
+        # from the pixel's first value): bitwise constant over the segment
+        one = torch.ones(B * h * w, dtype=torch.bool, device=r.device)
+        if len(cp):
+            idx = q[:, None].expand(-1, 3)
+            vals = r.colors.index_select(0, cp)
+            moved = q[(vals != lo.index_select(0, q)).any(1)]
+            b, p = torch.div(moved, HW, rounding_mode="floor"), moved % HW
+            one[(b * h + torch.div(p, W * k, rounding_mode="floor")) * w + torch.div(p % W, k, rounding_mode="floor")] = False
+            lo.scatter_reduce_(0, idx, vals, reduce="amin", include_self=True)
+            hi.scatter_reduce_(0, idx, vals, reduce="amax", include_self=True)
+        lo_o = block_mean64(lo.view(B, H, W, 3), im, -VALUE_EPS).to(torch.float32)
+        hi_o = block_mean64(hi.view(B, H, W, 3), im, VALUE_EPS).to(torch.float32)
+        one = one.view(B, h, w)
         bx, by = im.border
         if bx:
             one[:, :, :bx] = one[:, :, w - bx:] = True
         if by:
             one[:, :by] = one[:, h - by:] = True
-        return (lo_o.cpu().numpy().astype(np.float32), hi_o.cpu().numpy().astype(np.float32), one.cpu().numpy())
+        return lo_o.cpu().numpy(), hi_o.cpu().numpy(), one.cpu().numpy()
 
 
 class SegmentCovers:
