@@ -65,7 +65,7 @@ class SurfelRenderer:
         require(imaging.kind == "surfel", "SurfelRenderer needs surfel imaging")
         self.axis = parse_axis(axis)
         self.imaging = imaging
-        self.alpha_range, self._sweep, self._policy = None, None, UnionPolicy()
+        self.alpha_range, self._sweep, self._policy, self._shades = None, None, UnionPolicy(), None
         self.intr = imaging.camera
         self.background = float(imaging.background)
         self.device = resolve_device(device)
@@ -77,7 +77,7 @@ class SurfelRenderer:
         # fixed for the whole motion: the renderer and the bounds read this one table
         HW = self.intr.height * self.intr.width
         if imaging.uncovered == "frame":
-            self.uncovered = self.colors[self._winners(_alphas([0.0], self.device))].reshape(HW, 3).clone()
+            self.uncovered = self.colors[self.by_rank[self.first_ranks(_alphas([0.0], self.device))]].reshape(HW, 3).clone()
         else:
             self.uncovered = self.colors[self.num_points].expand(HW, 3).clone()
         if alpha_range is not None:
@@ -104,6 +104,23 @@ class SurfelRenderer:
         self.corners = torch.as_tensor(self.corners_np, device=self.device)
         bg = np.full((1, 3), self.background, dtype=np.float32)
         self.colors = torch.as_tensor(np.concatenate([colors, bg]), device=self.device)
+        self._shades = None
+
+    @property
+    def shades(self) -> torch.Tensor:
+        """What a native pixel shows, by rank (:meth:`first_ranks`): row ``k < P`` the colour of the surfel of
+        rank ``k``, row ``P + pixel`` that pixel's uncovered value, float32 (P + H W, 3); the renderer's frames
+        and the bounds' values (:mod:`.surfel_bounds`) read this one table (:meth:`shade_rows`)."""
+        if self._shades is None:
+            self._shades = torch.cat([self.colors.index_select(0, self.by_rank[:self.num_points]), self.uncovered])
+            require(bool(torch.isfinite(self._shades).all()), "internal: a surfel colour or uncovered value that is not finite")
+        return self._shades
+
+    def shade_rows(self, ranks: torch.Tensor) -> torch.Tensor:
+        """The rows of :attr:`shades` of ranks (B H W,) of native pixels (``P``: that pixel's uncovered value)."""
+        HW = self.intr.height * self.intr.width
+        P = self.num_points
+        return torch.where(ranks == P, torch.arange(HW, device=ranks.device).repeat(len(ranks) // HW) + P, ranks)
 
     @property
     def chunk_size(self) -> int:
@@ -118,17 +135,17 @@ class SurfelRenderer:
         drawn = (d > 0).all(dim=1) & (zc > 0)
         return u.amin(1), u.amax(1), v.amin(1), v.amax(1), zc, drawn
 
-    def _winners(self, alphas: torch.Tensor) -> torch.Tensor:
-        """Index of the surfel each native pixel shows (``num_points`` = background), (B, Hn, Wn)."""
+    def first_ranks(self, alphas: torch.Tensor) -> torch.Tensor:
+        """The rank (:meth:`_set_points`) of the surfel each native pixel shows, (B Hn Wn,) (``num_points``: none
+        covers it): the covering surfel first in occlusion order."""
         H, W = self.intr.height, self.intr.width
         B, n = alphas.shape[0], self.num_points
         idx = torch.full((B * H * W,), n, dtype=torch.long, device=self.device)
         if n == 0:
-            return idx.view(B, H, W)
-        # the covering surfel first in occlusion order (the least rank, see _set_points)
+            return idx
         sweep = self._sweep_for(alphas)
         if sweep is None:
-            return self.by_rank[self.least_covering(alphas, idx)].view(B, H, W)
+            return self.least_covering(alphas, idx)
 
         def boxes_at(alphas, subset):   # the footprints at every pose, inner box = outer box
             umin, umax, vmin, vmax, zc, drawn = self.footprints(alphas, subset)
@@ -140,7 +157,7 @@ class SurfelRenderer:
             union = lambda a=a: sweep.union(float(a.min()), float(a.max()))   # noqa: E731 (only if the union pass runs)
             out.append(first_covers(union, lambda sub: boxes_at(a, sub), len(a), 0.0, 0.0, self.rank, self.samples,
                                     covered_pairs, policy=self._policy))
-        return self.by_rank[torch.cat(out)].view(B, H, W)
+        return torch.cat(out).view(-1)
 
     def least_covering(self, alphas: torch.Tensor, ranks: torch.Tensor, subset: torch.Tensor | None = None) -> torch.Tensor:
         """``ranks`` (B H W,) lowered in place, per pose and native pixel, to the rank of every surfel (of the sorted
@@ -160,25 +177,24 @@ class SurfelRenderer:
             self._sweep = FootprintSweep(self, *self.alpha_range)
         return self._sweep
 
-    def _shade(self, winners: torch.Tensor) -> torch.Tensor:
-        """The colours (B, Hn, Wn, 3) of winner indices (``num_points``: the pixel's uncovered value)."""
-        H, W = self.intr.height, self.intr.width
-        return torch.where((winners == self.num_points)[..., None], self.uncovered.view(H, W, 3), self.colors[winners])
+    def _shade(self, ranks: torch.Tensor) -> torch.Tensor:
+        """The colours (B, Hn, Wn, 3) of the ranks (B Hn Wn,) of :meth:`first_ranks`."""
+        return self.shades.index_select(0, self.shade_rows(ranks)).view(-1, self.intr.height, self.intr.width, 3)
 
     def render_native(self, alphas) -> torch.Tensor:
         """Native-resolution frames (B, Hn, Wn, 3) float32, before reduction and border."""
         a = _alphas(alphas, self.device)
-        return torch.cat([self._shade(self._winners(a[s:s + self.chunk_size]))
+        return torch.cat([self._shade(self.first_ranks(a[s:s + self.chunk_size]))
                           for s in range(0, len(a), self.chunk_size)]) if len(a) else \
             torch.empty((0, self.intr.height, self.intr.width, 3), dtype=torch.float32, device=self.device)
 
-    def render_batch(self, alphas, winners=None) -> torch.Tensor:
-        """Frames ``(B, H, W, 3)`` float32 as handed to the noise (reduced, border masked); ``winners(alphas)``:
-        the surfel index each native pixel shows, (B, Hn, Wn) (default the renderer's own; the same from
-        :class:`.surfel_bounds.SegmentCovers`)."""
+    def render_batch(self, alphas, ranks=None) -> torch.Tensor:
+        """Frames ``(B, H, W, 3)`` float32 as handed to the noise (reduced, border masked); ``ranks(alphas)``:
+        the rank of the surfel each native pixel shows, (B Hn Wn,) (default the renderer's own,
+        :meth:`first_ranks`; the same from :class:`.surfel_bounds.SegmentCovers`)."""
         a = _alphas(alphas, self.device)
-        winners = winners or self._winners
-        out = [reduce_frames(self._shade(winners(a[s:s + self.chunk_size])), self.imaging)
+        ranks = ranks or self.first_ranks
+        out = [reduce_frames(self._shade(ranks(a[s:s + self.chunk_size])), self.imaging)
                for s in range(0, len(a), self.chunk_size)]
         if not out:
             h, w = self.imaging.out_shape

@@ -210,10 +210,6 @@ class _HullSweep(FootprintSweep):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.policy = UnionPolicy()   # whether a batch tries the union first (.surfel_cover), per sweep
-        r = self.r
-        # rank -> the surfel's colour, then P + native pixel -> its uncovered value (:meth:`segments`)
-        self.values = torch.cat([r.colors.index_select(0, r.by_rank[:self.P]), r.uncovered])
-        require(bool(torch.isfinite(self.values).all()), "internal: a surfel or uncovered value that is not finite")
 
     @property
     def batch(self) -> int:
@@ -240,11 +236,10 @@ class _HullSweep(FootprintSweep):
         if keep is not None:
             keep[0].add(keep[1], sure_first, q, cp)
         # the values of the native pixels: the renderer's own float32 colours (and its uncovered value of
-        # each pixel where no surfel surely covers it), their least and greatest per channel exactly; one table
-        # row per rank (P + pixel: the pixel's uncovered value), so every pixel has a value
+        # each pixel where no surfel surely covers it: the renderer's table), their least and greatest per channel
+        # exactly
         HW = H * W
-        at = torch.where(sure_first == P, torch.arange(HW, device=r.device).repeat(B) + P, sure_first)
-        lo = self.values.index_select(0, at)                                                # (B HW, 3)
+        lo = r.shades.index_select(0, r.shade_rows(sure_first))                                # (B HW, 3)
         hi = lo.clone()
         im = r.imaging
         k = im.factor
@@ -329,8 +324,9 @@ class SegmentCovers:
         self.where, self.point, self._parts = where[order], point[order], []
         self.starts = torch.searchsorted(self.where, torch.arange(S + 1, device=dev) * HW).tolist()
 
-    def winners(self, alphas: torch.Tensor) -> torch.Tensor:
-        """The surfel index each native pixel shows at ``alphas`` (inside the grid), (B, H, W): the renderer's.
+    def first_ranks(self, alphas: torch.Tensor) -> torch.Tensor:
+        """The rank of the surfel each native pixel shows at ``alphas`` (inside the grid), (B H W,): the renderer's
+        :meth:`.surfel.SurfelRenderer.first_ranks`.
         Per segment, its first surely covering ranks lowered to those of its candidates' surfels covering
         the pixel at the pose (any other pixel such a surfel covers has its first before it)."""
         r, g = self.r, self.grid
@@ -345,11 +341,11 @@ class SegmentCovers:
             if len(subset):
                 sel = torch.as_tensor(at, device=ranks.device)
                 ranks[sel] = r.least_covering(alphas[sel], ranks[sel].reshape(-1), subset).view(len(at), HW)
-        return r.by_rank[ranks].view(B, r.intr.height, r.intr.width)
+        return ranks.view(-1)
 
     def render_batch(self, alphas) -> torch.Tensor:
         """The renderer's ``render_batch(alphas)`` for poses inside the grid, decided from the covers."""
-        return self.r.render_batch(alphas, winners=self.winners)
+        return self.r.render_batch(alphas, ranks=self.first_ranks)
 
 
 def _segment_boxes(u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi, H: int, W: int):
