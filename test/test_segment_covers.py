@@ -1,8 +1,10 @@
 """Frames at poses inside a bounded grid, decided from what bounded it (:class:`SegmentCovers`), are the
 renderer's bit for bit: on random clouds (holes, ulp duplicates, points near the camera plane and behind it),
 every axis, with the bounds' union path (several batches) and their enumeration, at poses inside segments,
-on grid points, one ulp either side of them and at both ends; a lost candidate shows; a budget too small
-keeps nothing; and the certificates of the anchors' path are those of rendering every refinement pose."""
+on grid points, one ulp either side of them and at both ends; the bounds of a refinement's segments from
+them (translations) are those from every surfel bit for bit; a lost candidate shows in both; a budget too
+small keeps nothing; and the certificates of the anchors' path are those of rendering and bounding every
+refinement pose and segment from every surfel."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -15,6 +17,7 @@ import pws_ros.core.surfel as surfel_mod
 import pws_ros.core.surfel_bounds as sb
 import pws_ros.core.surfel_cover as cover
 from pws_ros.core.certify import CertifyConfig, certify
+from pws_ros.core.cloud import Cloud
 from pws_ros.core.errors import PwsError
 from pws_ros.core.imaging import SurfelRenderer, hulls_within, make_imaging
 from pws_ros.core.surfel_bounds import SegmentCovers
@@ -25,9 +28,11 @@ from test_surfel_cover import CAM, RADIUS, random_cloud
 BIG = 1 << 30
 
 
-def _grid_and_covers(axis, seed, scale=2.0, points=30):
+def _grid_and_covers(axis, seed, scale=2.0, points=30, extra=None):
     rng = np.random.default_rng(seed)
     cloud = random_cloud(rng)
+    if extra is not None:   # more points (their colours random)
+        cloud = Cloud(np.concatenate([cloud.points, extra]), np.concatenate([cloud.colors, rng.random((len(extra), 3)).astype(np.float32)]))
     b = RADIUS[axis] * scale
     im = make_imaging("surfel", CAM, (12, 16), render_factor=2, uncovered="frame")
     r = SurfelRenderer(cloud, im, axis, alpha_range=(-b, b))
@@ -119,8 +124,10 @@ def _fields(cert):
 
 
 def test_the_anchors_path_certifies_as_when_every_pose_is_rendered(monkeypatch):
-    """Where the first placement falls short, the refinement's frames come from the covers; the certificates
-    are those of rendering them (COVERS_BYTES = 0: nothing kept)."""
+    """Where the first placement falls short, the refinement's frames come from the covers (and on tz its
+    bounds); the certificates are those of rendering and bounding from every surfel (COVERS_BYTES = 0:
+    nothing kept)."""
+    decided = _decisions(monkeypatch)
     used = []
     render_batch = SegmentCovers.render_batch
     monkeypatch.setattr(SegmentCovers, "render_batch", lambda self, a: used.append(len(a)) or render_batch(self, a))
@@ -136,6 +143,7 @@ def test_the_anchors_path_certifies_as_when_every_pose_is_rendered(monkeypatch):
         monkeypatch.setattr(anchored, "COVERS_BYTES", 256 * 2**20)
         assert with_covers.status != "error" and _fields(with_covers) == _fields(rendered), (seed, axis)
     assert len(used) >= 2 and sum(used) > 0   # the covers did render (a second refinement happened)
+    assert sum(decided) > 0                   # and bound the refinement on tz
 
 
 @pytest.mark.parametrize("axis", ["tz", "ry", "rz"])
@@ -155,3 +163,79 @@ def test_union_and_enumeration_keep_the_same_covers(monkeypatch, axis):
     assert np.array_equal(union.first.numpy(), enumerated.first.numpy())
     pairs = [sorted(zip(c.where.tolist(), c.point.tolist())) for c in (union, enumerated)]
     assert pairs[0] == pairs[1]
+
+
+def _refined(rng, grid):
+    """A refinement of ``grid``: random points inside its segments, midpoints, and points one ulp off the grid
+    points (segments of one ulp)."""
+    inner = grid[:-1] + (grid[1:] - grid[:-1]) * rng.uniform(0.0, 1.0, len(grid) - 1)
+    mids = 0.5 * (grid[:-1] + grid[1:])
+    ulps = np.concatenate([np.nextafter(grid[1:-1], np.inf), np.nextafter(grid[1:-1], -np.inf)])
+    return np.union1d(grid, np.concatenate([inner, mids[::2], rng.choice(ulps, 6, replace=False)]))
+
+
+def _decisions(monkeypatch):
+    calls = []
+    decide = SegmentCovers.decide
+    monkeypatch.setattr(SegmentCovers, "decide", lambda self, sweep, g: calls.append(len(g) - 1) or decide(self, sweep, g))
+    return calls
+
+
+@pytest.mark.parametrize("union", [True, False])
+@pytest.mark.parametrize("axis", ["tx", "ty", "tz", "rx", "ry", "rz"])
+def test_refined_bounds_from_the_covers_are_those_from_every_surfel(monkeypatch, axis, union):
+    """Segments inside a bounded grid's (a refinement) bounded from its covers along a translation
+    (SegmentCovers.decide) equal, bit for bit, those bounded from every surfel; rotations are bounded from every
+    surfel. Parents bounded by the union path in several batches, or by enumeration; near-plane and behind-camera
+    points whose pole lies inside the range (tz), ulp duplicates, segments of one ulp."""
+    if union:
+        monkeypatch.setattr(cover, "MOTION_LIMIT", float("inf"))
+        monkeypatch.setattr(cover, "DYNAMIC_SHARE", float("inf"))
+        monkeypatch.setattr(sb, "HULL_BATCH_ELEMENTS", 3000)
+    else:   # every batch of more than one segment enumerated
+        monkeypatch.setattr(cover, "MOTION_LIMIT", -float("inf"))
+    enumerations = _count_enumerations(monkeypatch)
+    calls = _decisions(monkeypatch)
+    for seed in (3, 8):
+        # points whose pole is inside the motion's range, seen mirrored near the image centre once behind the
+        # camera (there they are no candidate: not drawn)
+        rng, r, grid, covers = _grid_and_covers(axis, seed, extra=np.array([[0.0, 0.0, 0.01], [0.001, -0.002, 0.03]]))
+        assert covers.where.numel() > 0 and not covers.dropped
+        fine = _refined(rng, grid)
+        b = grid[-1]
+        got = hulls_within(r, -b, b)(fine, parent=covers)
+        ref = hulls_within(r, -b, b)(fine)
+        for name in ("lo", "hi", "constant"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=f"{axis} seed {seed} {name}")
+        assert not ref.constant.all()
+    assert (sum(calls) > 0) == (axis in ("tx", "ty", "tz"))
+    assert (enumerations == []) == union
+
+
+def test_a_lost_candidate_changes_the_refined_bounds(monkeypatch):
+    """The comparison above can fail: one parent segment's candidates dropped, its children's bounds differ."""
+    calls = _decisions(monkeypatch)
+    rng, r, grid, covers = _grid_and_covers("tz", 3)
+    fine = _refined(rng, grid)
+    b = grid[-1]
+    ref = hulls_within(r, -b, b)(fine)
+    counts = np.diff(covers.starts)
+    k = int(np.argmax(counts))
+    a, e = covers.starts[k], covers.starts[k + 1]
+    keep = np.r_[np.arange(a), np.arange(e, len(covers.where))]
+    covers.where, covers.point = covers.where[keep], covers.point[keep]
+    covers.starts = [s if i <= k else s - (e - a) for i, s in enumerate(covers.starts)]
+    got = hulls_within(r, -b, b)(fine, parent=covers)
+    assert calls and not (np.array_equal(got.lo, ref.lo) and np.array_equal(got.hi, ref.hi))
+
+
+def test_segments_outside_the_covers_grid_are_bounded_from_every_surfel(monkeypatch):
+    calls = _decisions(monkeypatch)
+    rng, r, grid, covers = _grid_and_covers("tz", 3)
+    b = grid[-1]
+    across = np.array([grid[2], grid[4]])            # one segment over two of the covers' grid
+    assert not covers.decides(np.array([np.nextafter(-b, -np.inf), -b])) and not covers.decides(np.array([grid[1], b]))
+    assert covers.decides(np.array([-b, np.nextafter(-b, np.inf)])) and covers.decides(grid[3:5])
+    ref = hulls_within(r, -b, b)(across)
+    got = hulls_within(r, -b, b)(across, parent=covers)
+    assert calls == [] and np.array_equal(got.lo, ref.lo) and np.array_equal(got.hi, ref.hi)

@@ -75,8 +75,11 @@ class _RendererGeometry:
             self._last = (g, self._bounds_of(g, covers))
             self._covers = None if covers.dropped else covers
         elif not np.array_equal(self._last[0], g):
-            self._covers = None   # the refinement they served is rendered
-            self._last = (g, refined_hulls(self._bounds_of, *self._last, g))
+            # the refinement's new segments, each inside one of the grid's, bounded from its covers where they
+            # decide them (a translation: SegmentCovers.decide); then the covers are released
+            covers, self._covers = self._covers, None
+            bounds_of = self._bounds_of if covers is None else functools.partial(self._bounds_of, parent=covers)
+            self._last = (g, refined_hulls(bounds_of, *self._last, g))
         return self._last[1]
 
     def frontier(self, anchor_frames: np.ndarray, R: np.ndarray, alphas: np.ndarray, covered: np.ndarray,

@@ -26,8 +26,9 @@ from .cloud import Cloud
 from .errors import require
 from .framing import EDGE_EPS, SAFETY, VALUE_EPS, Imaging, block_mean64
 from .partition import validate_grid
+from .motion import TRANSLATIONS
 from .surfel import FootprintSweep, SurfelRenderer, covered_pairs
-from .surfel_cover import UnionPolicy, first_covers
+from .surfel_cover import UnionPolicy, first_covers, range_implied
 
 
 @dataclass
@@ -174,11 +175,12 @@ def hulls_within(renderer: SurfelRenderer, lo: float, hi: float, *, max_bytes: i
     bounded in batches of segments by one sweep set up once over ``[lo, hi]``; for grids chosen one after
     another (:func:`.coverage.frontier_reach`) as for one whole plan (:func:`segment_hulls`). A grid
     whose bounds need more than ``max_bytes`` is refused. ``hulls(g, covers)`` also keeps what decided the
-    bounds in ``covers`` (a :class:`SegmentCovers` of ``g``: frames inside the grid from it)."""
+    bounds in ``covers`` (a :class:`SegmentCovers` of ``g``: frames inside the grid from it); ``hulls(g, parent=covers)``
+    bounds segments inside those of a grid bounded before from its covers (:meth:`SegmentCovers.decide`)."""
     sweep = _HullSweep(renderer, float(lo), float(hi))
     h, w = renderer.imaging.out_shape
 
-    def hulls(g, covers: "SegmentCovers | None" = None) -> HullValues:
+    def hulls(g, covers: "SegmentCovers | None" = None, parent: "SegmentCovers | None" = None) -> HullValues:
         g = np.asarray(g, dtype=np.float64)
         require(len(g) >= 2 and lo <= g[0] and g[-1] <= hi and bool(np.all(np.diff(g) > 0)),
                 f"grid {g!r} is not increasing inside [{lo!r}, {hi!r}]")
@@ -192,7 +194,7 @@ def hulls_within(renderer: SurfelRenderer, lo: float, hi: float, *, max_bytes: i
         constant = np.empty((S, h, w), bool)
         for s in range(0, S, sweep.batch):
             e = min(S, s + sweep.batch)
-            l_[s:e], h_[s:e], constant[s:e] = sweep.segments(g[s:e + 1], None if covers is None else (covers, s))
+            l_[s:e], h_[s:e], constant[s:e] = sweep.segments(g[s:e + 1], None if covers is None else (covers, s), parent)
         if covers is not None:
             covers.close()
         return HullValues(g, l_, h_, constant, {"surfels": renderer.num_points, "segments": S})
@@ -216,14 +218,18 @@ class _HullSweep(FootprintSweep):
         """Segments per batch."""
         return max(1, HULL_BATCH_ELEMENTS // max(1, self.P))
 
-    def segments(self, g, keep=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def segments(self, g, keep=None, parent: "SegmentCovers | None" = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``lo, hi`` (B, h, w, 3) float32 and ``constant`` (B, h, w) of the segments of the grid ``g``;
         ``keep = (covers, s)``: their first surely covering surfels and candidates go to that
-        :class:`SegmentCovers` as its segments ``s ..``."""
+        :class:`SegmentCovers` as its segments ``s ..``; ``parent``: the covers of a coarser grid whose segments
+        hold these (:meth:`SegmentCovers.decide`, where it applies), the same values."""
         r = self.r
         g = np.asarray(g, dtype=np.float64)
         B, P = len(g) - 1, self.P
         H, W = r.intr.height, r.intr.width
+        if parent is not None and parent.decides(g):
+            sure_first, q, cp = parent.decide(self, g)
+            return self._values(B, sure_first, q, cp)
         # candidates: possibly covering at some alpha of the segment, and among them the surely covering ones
         # (the sure box lies inside the sweep box, sure_drawn implies maybe): the first surely covering surfel in
         # occlusion order (its rank; P: none) per segment and native pixel hides every later surfel throughout
@@ -235,6 +241,14 @@ class _HullSweep(FootprintSweep):
         sure_first = sure_first.view(-1)
         if keep is not None:
             keep[0].add(keep[1], sure_first, q, cp)
+        return self._values(B, sure_first, q, cp)
+
+    def _values(self, B: int, sure_first: torch.Tensor, q: torch.Tensor, cp: torch.Tensor):
+        """:meth:`segments`' values of ``B`` segments from their first surely covering ranks (B H W,) and
+        candidates (``q = segment * H * W + pixel``, surfel ``cp``; any outer pairs of rank at most the first,
+        at least those of rank below it)."""
+        r = self.r
+        H, W = r.intr.height, r.intr.width
         # the values of the native pixels: the renderer's own float32 colours (and its uncovered value of
         # each pixel where no surfel surely covers it: the renderer's table), their least and greatest per channel
         # exactly
@@ -271,7 +285,8 @@ class SegmentCovers:
     ``P``: none) surely covering it throughout the segment and the candidates, every surfel that may
     cover it somewhere in the segment, up to that one (:func:`.surfel_cover.first_covers`). Kept to decide
     the renderer's frames at poses inside the grid (the grid's refinement) from them instead of from every
-    surfel (:meth:`render_batch`).
+    surfel (:meth:`render_batch`), and along a translation the bounds of the refinement's segments
+    (:meth:`decide`).
 
     Why they are the renderer's frames bit for bit: at a pose inside a segment, a surfel the renderer finds
     covering a pixel (its footprint at that pose, the pixel range and box tests of
@@ -346,6 +361,63 @@ class SegmentCovers:
     def render_batch(self, alphas) -> torch.Tensor:
         """The renderer's ``render_batch(alphas)`` for poses inside the grid, decided from the covers."""
         return self.r.render_batch(alphas, ranks=self.first_ranks)
+
+    def decides(self, g) -> bool:
+        """Whether :meth:`decide` applies to the segments of the grid ``g``: kept covers, a translation, sample
+        points whose box test alone decides a pair (:func:`.surfel_cover.range_implied`), each segment inside
+        one of the covers' grid."""
+        if self.dropped or self.where is None or self.r.axis not in TRANSLATIONS or not range_implied(self.r.samples):
+            return False
+        g, G = np.asarray(g, dtype=np.float64), self.grid
+        k = np.searchsorted(G, g[:-1], side="right") - 1
+        return bool(np.all((k >= 0) & (k < len(G) - 1)) and np.all(g[1:] <= G[np.minimum(k + 1, len(G) - 1)]))
+
+    def decide(self, sweep: "_HullSweep", g) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """What :func:`.surfel_cover.first_covers` gives the bounds of the segments of ``g`` (each inside a segment of
+        the covers' grid, a translation: :meth:`decides`), the first surely covering ranks (B H W,) and the
+        candidates ``(where, surfel)`` of rank below them, from the covers of the parent segments instead of
+        from every surfel.
+
+        Why it is the same. Along a translation the computed projections are monotone in ``alpha`` between split
+        events, bit for bit: ``u = cx + fx X / (Z - alpha)`` (tz) is a chain of float operations each monotone in
+        the one argument that moves (a subtraction, the reciprocal on one side of the pole, a fused or unfused
+        multiply-add), so a value at a new grid point lies between the values at the events or ends around it,
+        which are the parent's; the same for ``v``, the corner depths and the centre depth (and tx, ty). So a
+        child segment's sweep box lies inside its parent's and its sure box holds the parent's, bit for bit
+        (:func:`_segment_boxes`; a wild child is a wild parent). Hence a pair that may cover in the child may
+        in the parent (an outer pair of the parent); the parent's first surely covering surfel surely covers in
+        the child, so the child's first is at most the parent's; and every outer pair of the child of rank below
+        the parent's first is a kept candidate of the parent. The child's first and candidates are then those
+        among the parent's candidates that the bounds' own tests (boxes of the child from
+        :meth:`.surfel.FootprintSweep.ranges`, ``EDGE_EPS`` as :func:`.surfel_cover.first_covers` widens them)
+        find surely covering and maybe covering. Rotations mix two moving terms (``c X - s Z``): no such
+        argument, and they are bounded from every surfel."""
+        r, G = self.r, self.grid
+        g = np.asarray(g, dtype=np.float64)
+        B, HW = len(g) - 1, self.first.shape[1]
+        H, W = r.intr.height, r.intr.width
+        k = (np.searchsorted(G, g[:-1], side="right") - 1).tolist()
+        dev = self.first.device
+        first = self.first[torch.as_tensor(k, device=dev)].to(torch.long).view(-1)   # the parents' firsts, a copy
+        where = torch.cat([self.where[self.starts[kk]:self.starts[kk + 1]] + (b - kk) * HW for b, kk in enumerate(k)])
+        point = torch.cat([self.point[self.starts[kk]:self.starts[kk + 1]] for kk in k])
+        if not len(point):
+            return first, where, point
+        subset, loc = torch.unique(point, sorted=True, return_inverse=True)
+        outer, omask, inner, imask = _segment_boxes(*sweep.ranges(g, subset), H, W)        # (B, U) each
+        seg = torch.div(where, HW, rounding_mode="floor")
+        pix = where - seg * HW
+        su, sv = r.samples.su[pix], r.samples.sv[pix]
+        eps, ieps = EDGE_EPS, -EDGE_EPS
+        # the tests of .surfel_cover.first_covers (and .surfel.covered_pairs), pair by pair
+        possible = omask[seg, loc] & (outer[0][seg, loc] - eps <= su) & (su < outer[1][seg, loc] + eps) \
+            & (outer[2][seg, loc] - eps <= sv) & (sv < outer[3][seg, loc] + eps)
+        sure = possible & imask[seg, loc] & (inner[0][seg, loc] - ieps <= su) & (su < inner[1][seg, loc] + ieps) \
+            & (inner[2][seg, loc] - ieps <= sv) & (sv < inner[3][seg, loc] + ieps)
+        rk = r.rank[point]
+        first.scatter_reduce_(0, where[sure], rk[sure], reduce="amin", include_self=True)
+        keep = possible & (rk < first[where])
+        return first, where[keep], point[keep]
 
 
 def _segment_boxes(u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi, H: int, W: int):
