@@ -11,6 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import torch
 
 import pws_ros.core.anchored as anchored
 import pws_ros.core.surfel as surfel_mod
@@ -19,6 +20,7 @@ import pws_ros.core.surfel_cover as cover
 from pws_ros.core.certify import CertifyConfig, certify
 from pws_ros.core.cloud import Cloud
 from pws_ros.core.errors import PwsError
+from pws_ros.core.framing import SAMPLE_JITTER
 from pws_ros.core.imaging import SurfelRenderer, hulls_within, make_imaging
 from pws_ros.core.surfel_bounds import SegmentCovers
 from pws_ros.replay.ceiling import never_changing_model
@@ -28,7 +30,7 @@ from test_surfel_cover import CAM, RADIUS, random_cloud
 BIG = 1 << 30
 
 
-def _grid_and_covers(axis, seed, scale=2.0, points=30, extra=None):
+def _grid_and_covers(axis, seed, scale=2.0, points=30, extra=None, edge_samples=False):
     rng = np.random.default_rng(seed)
     cloud = random_cloud(rng)
     if extra is not None:   # more points (their colours random)
@@ -36,6 +38,14 @@ def _grid_and_covers(axis, seed, scale=2.0, points=30, extra=None):
     b = RADIUS[axis] * scale
     im = make_imaging("surfel", CAM, (12, 16), render_factor=2, uncovered="frame")
     r = SurfelRenderer(cloud, im, axis, alpha_range=(-b, b))
+    if edge_samples:   # a third of the sample points on an edge of their jitter square: the pixel ranges are not implied
+        S = r.samples
+        n = len(S.su)
+        at = torch.as_tensor(rng.choice(n, n // 3, replace=False))
+        centre = (at % S.W).double() + 0.5
+        S.su[at] = centre + torch.as_tensor(rng.choice([-1.0, 1.0], len(at))) * SAMPLE_JITTER
+        S._range_implied = None
+        assert not cover.range_implied(S)
     grid = np.union1d(np.sort(rng.uniform(-b, b, points)), [-b, 0.0, b])
     covers = SegmentCovers(r, grid, BIG)
     hulls_within(r, -b, b)(grid, covers)
@@ -181,25 +191,27 @@ def _decisions(monkeypatch):
     return calls
 
 
-@pytest.mark.parametrize("union", [True, False])
+@pytest.mark.parametrize("union", [True, False, "edges"])
 @pytest.mark.parametrize("axis", ["tx", "ty", "tz", "rx", "ry", "rz"])
 def test_refined_bounds_from_the_covers_are_those_from_every_surfel(monkeypatch, axis, union):
     """Segments inside a bounded grid's (a refinement) bounded from its covers along a translation
     (SegmentCovers.decide) equal, bit for bit, those bounded from every surfel; rotations are bounded from every
-    surfel. Parents bounded by the union path in several batches, or by enumeration; near-plane and behind-camera
+    surfel. Parents bounded by the union path in several batches, or by enumeration (also with sample points on
+    the edges of their jitter squares: pixel ranges not implied by the box tests); near-plane and behind-camera
     points whose pole lies inside the range (tz), ulp duplicates, segments of one ulp."""
-    if union:
+    if union is True:
         monkeypatch.setattr(cover, "MOTION_LIMIT", float("inf"))
         monkeypatch.setattr(cover, "DYNAMIC_SHARE", float("inf"))
         monkeypatch.setattr(sb, "HULL_BATCH_ELEMENTS", 3000)
-    else:   # every batch of more than one segment enumerated
+    elif union is False:   # every batch of more than one segment enumerated
         monkeypatch.setattr(cover, "MOTION_LIMIT", -float("inf"))
     enumerations = _count_enumerations(monkeypatch)
     calls = _decisions(monkeypatch)
     for seed in (3, 8):
         # points whose pole is inside the motion's range, seen mirrored near the image centre once behind the
         # camera (there they are no candidate: not drawn)
-        rng, r, grid, covers = _grid_and_covers(axis, seed, extra=np.array([[0.0, 0.0, 0.01], [0.001, -0.002, 0.03]]))
+        rng, r, grid, covers = _grid_and_covers(axis, seed, extra=np.array([[0.0, 0.0, 0.01], [0.001, -0.002, 0.03]]),
+                                                edge_samples=union == "edges")
         assert covers.where.numel() > 0 and not covers.dropped
         fine = _refined(rng, grid)
         b = grid[-1]
@@ -209,7 +221,7 @@ def test_refined_bounds_from_the_covers_are_those_from_every_surfel(monkeypatch,
             np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=f"{axis} seed {seed} {name}")
         assert not ref.constant.all()
     assert (sum(calls) > 0) == (axis in ("tx", "ty", "tz"))
-    assert (enumerations == []) == union
+    assert (enumerations == []) == (union is True)
 
 
 def test_a_lost_candidate_changes_the_refined_bounds(monkeypatch):

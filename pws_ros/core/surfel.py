@@ -309,6 +309,14 @@ class SamplePoints:
         self.sv = torch.as_tensor((r + 0.5 + jy).reshape(-1), device=device)
 
 
+def pixel_range(umin, umax, vmin, vmax, eps: float, W: int, H: int):
+    """The pixels whose sample point can lie in the box ``[umin - eps, umax + eps) x [vmin - eps, vmax + eps)``
+    (their jitter squares ``c + 1/2 +- SAMPLE_JITTER`` reach it): columns ``c0 <= c < c1``, rows ``r0 <= r < r1``,
+    float tensors holding integers in ``[0, W]``, ``[0, H]`` (NaN where an edge is NaN)."""
+    return (torch.ceil(umin - (eps + 0.5 + SAMPLE_JITTER)).clamp_(0, W), torch.ceil(umax + (eps - 0.5 + SAMPLE_JITTER)).clamp_(0, W),
+            torch.ceil(vmin - (eps + 0.5 + SAMPLE_JITTER)).clamp_(0, H), torch.ceil(vmax + (eps - 0.5 + SAMPLE_JITTER)).clamp_(0, H))
+
+
 def covered_pairs(umin, umax, vmin, vmax, mask, samples: SamplePoints, eps: float, inner=None):
     """``(point, where, inside)`` of every native pixel whose sample point lies in the box
     ``[umin - eps, umax + eps) x [vmin - eps, vmax + eps)`` of a point where ``mask`` (arrays (B, P);
@@ -319,10 +327,7 @@ def covered_pairs(umin, umax, vmin, vmax, mask, samples: SamplePoints, eps: floa
     B, P = umin.shape
     dev = umin.device
     # the pixels whose sample can lie in the box: columns c0 <= c < c1, rows r0 <= r < r1
-    c0 = torch.ceil(umin - (eps + 0.5 + SAMPLE_JITTER)).clamp_(0, W).long().view(-1)
-    c1 = torch.ceil(umax + (eps - 0.5 + SAMPLE_JITTER)).clamp_(0, W).long().view(-1)
-    r0 = torch.ceil(vmin - (eps + 0.5 + SAMPLE_JITTER)).clamp_(0, H).long().view(-1)
-    r1 = torch.ceil(vmax + (eps - 0.5 + SAMPLE_JITTER)).clamp_(0, H).long().view(-1)
+    c0, c1, r0, r1 = (x.long().view(-1) for x in pixel_range(umin, umax, vmin, vmax, eps, W, H))
     nc, nr = c1.sub_(c0).clamp_(min=0), r1.sub_(r0).clamp_(min=0)   # (a NaN edge: no pixel, not an overflow)
     live = mask.reshape(-1) & (nc > 0) & (nr > 0)
     base = r0.mul_(W).add_(c0)
@@ -469,4 +474,4 @@ class FootprintSweep:
 
 
 __all__ = ["FootprintSweep", "SamplePoints", "SurfelRenderer", "bin_cloud", "covered_pairs", "occlusion_key",
-           "surfel_corners"]
+           "pixel_range", "surfel_corners"]

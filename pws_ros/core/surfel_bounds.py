@@ -27,8 +27,8 @@ from .errors import require
 from .framing import EDGE_EPS, SAFETY, VALUE_EPS, Imaging, block_mean64
 from .partition import validate_grid
 from .motion import TRANSLATIONS
-from .surfel import FootprintSweep, SurfelRenderer, covered_pairs
-from .surfel_cover import UnionPolicy, first_covers, range_implied
+from .surfel import FootprintSweep, SurfelRenderer, covered_pairs, pixel_range
+from .surfel_cover import UnionPolicy, first_covers
 
 
 @dataclass
@@ -324,7 +324,9 @@ class SegmentCovers:
         before = self.r.rank[cp] < sure_first[q]   # the first surely covering surfel itself needs no test
         self._parts.append((q[before] + s * HW, cp[before]))
         self.used += 16 * int(before.sum())
-        if 3 * self.used > self.max_bytes:   # close() sorts the candidates: about three times their size at its peak
+        # close() sorts the candidates: at its peak their pieces, one concatenation, the order and the sorted copy,
+        # under four times their size (the first ranks are not copied)
+        if self.used + 3 * (self.used - 4 * self.first.numel()) > self.max_bytes:
             self.dropped, self.first, self._parts = True, None, []
 
     def close(self) -> None:
@@ -363,10 +365,9 @@ class SegmentCovers:
         return self.r.render_batch(alphas, ranks=self.first_ranks)
 
     def decides(self, g) -> bool:
-        """Whether :meth:`decide` applies to the segments of the grid ``g``: kept covers, a translation, sample
-        points whose box test alone decides a pair (:func:`.surfel_cover.range_implied`), each segment inside
-        one of the covers' grid."""
-        if self.dropped or self.where is None or self.r.axis not in TRANSLATIONS or not range_implied(self.r.samples):
+        """Whether :meth:`decide` applies to the segments of the grid ``g``: kept covers, a translation, each segment
+        inside one of the covers' grid."""
+        if self.dropped or self.where is None or self.r.axis not in TRANSLATIONS:
             return False
         g, G = np.asarray(g, dtype=np.float64), self.grid
         k = np.searchsorted(G, g[:-1], side="right") - 1
@@ -384,13 +385,14 @@ class SegmentCovers:
         multiply-add), so a value at a new grid point lies between the values at the events or ends around it,
         which are the parent's; the same for ``v``, the corner depths and the centre depth (and tx, ty). So a
         child segment's sweep box lies inside its parent's and its sure box holds the parent's, bit for bit
-        (:func:`_segment_boxes`; a wild child is a wild parent). Hence a pair that may cover in the child may
-        in the parent (an outer pair of the parent); the parent's first surely covering surfel surely covers in
+        (:func:`_segment_boxes`; a wild child is a wild parent), and so do the pixel ranges
+        :func:`.surfel.covered_pairs` enumerates (``ceil`` of an edge, monotone too). Hence a pair that may cover
+        in the child may in the parent (an outer pair of the parent); the parent's first surely covering surfel surely covers in
         the child, so the child's first is at most the parent's; and every outer pair of the child of rank below
         the parent's first is a kept candidate of the parent. The child's first and candidates are then those
         among the parent's candidates that the bounds' own tests (boxes of the child from
         :meth:`.surfel.FootprintSweep.ranges`, ``EDGE_EPS`` as :func:`.surfel_cover.first_covers` widens them)
-        find surely covering and maybe covering. Rotations mix two moving terms (``c X - s Z``): no such
+        find surely covering and maybe covering (its pixel range, box and mask, then the sure box and mask). Rotations mix two moving terms (``c X - s Z``): no such
         argument, and they are bounded from every surfel."""
         r, G = self.r, self.grid
         g = np.asarray(g, dtype=np.float64)
@@ -409,9 +411,13 @@ class SegmentCovers:
         pix = where - seg * HW
         su, sv = r.samples.su[pix], r.samples.sv[pix]
         eps, ieps = EDGE_EPS, -EDGE_EPS
-        # the tests of .surfel_cover.first_covers (and .surfel.covered_pairs), pair by pair
-        possible = omask[seg, loc] & (outer[0][seg, loc] - eps <= su) & (su < outer[1][seg, loc] + eps) \
-            & (outer[2][seg, loc] - eps <= sv) & (sv < outer[3][seg, loc] + eps)
+        # the tests of .surfel.covered_pairs (as .surfel_cover.first_covers widens its boxes), pair by pair: the pixel
+        # range it enumerates (where the samples do not imply it, .surfel_cover.range_implied), the box and mask
+        u0, u1, v0, v1 = (x[seg, loc] for x in outer)
+        col, row = pix % W, torch.div(pix, W, rounding_mode="floor")
+        c0, c1, r0, r1 = pixel_range(u0, u1, v0, v1, eps, W, H)
+        possible = omask[seg, loc] & (c0 <= col) & (col < c1) & (r0 <= row) & (row < r1) \
+            & (u0 - eps <= su) & (su < u1 + eps) & (v0 - eps <= sv) & (sv < v1 + eps)
         sure = possible & imask[seg, loc] & (inner[0][seg, loc] - ieps <= su) & (su < inner[1][seg, loc] + ieps) \
             & (inner[2][seg, loc] - ieps <= sv) & (sv < inner[3][seg, loc] + ieps)
         rk = r.rank[point]
