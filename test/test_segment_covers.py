@@ -251,3 +251,21 @@ def test_segments_outside_the_covers_grid_are_bounded_from_every_surfel(monkeypa
     ref = hulls_within(r, -b, b)(across)
     got = hulls_within(r, -b, b)(across, parent=covers)
     assert calls == [] and np.array_equal(got.lo, ref.lo) and np.array_equal(got.hi, ref.hi)
+
+
+@pytest.mark.parametrize("axis", ["tx", "tz"])
+def test_covers_kept_from_the_parents_covers_are_those_from_every_surfel(axis):
+    """A refinement bounded from its parent's covers keeps, per segment and pixel, the same first surely covering
+    rank and candidates before it as when bounded from every surfel: its own refinement's frames and bounds come
+    from them."""
+    rng, r, grid, covers = _grid_and_covers(axis, 3, extra=np.array([[0.0, 0.0, 0.01]]))
+    fine = _refined(rng, grid)
+    b = grid[-1]
+    kept = [SegmentCovers(r, fine, BIG) for _ in range(2)]
+    hulls_within(r, -b, b)(fine, kept[0], parent=covers)
+    hulls_within(r, -b, b)(fine, kept[1])
+    assert np.array_equal(kept[0].first.numpy(), kept[1].first.numpy()) and kept[0].where.numel() > 0
+    pairs = [sorted(zip(c.where.tolist(), c.point.tolist())) for c in kept]
+    assert pairs[0] == pairs[1]
+    poses = _poses(rng, fine)
+    np.testing.assert_array_equal(kept[0].render_batch(poses).numpy(), r.render_batch(poses).numpy())

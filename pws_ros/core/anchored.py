@@ -21,6 +21,7 @@ from .coverage import (FRONTIER_PARTS, FRONTIER_ROUNDS, AdaptiveAnchorsRule, coh
 from .distance_rows import DistanceRows
 from .errors import require
 from .imaging import HullValues, Imaging, SurfelRenderer, hulls_within, make_renderer
+from .motion import TRANSLATIONS
 from .surfel_bounds import SegmentCovers
 from .model import LoadedModel
 from .partition import Plan
@@ -39,6 +40,7 @@ class _RendererGeometry:
         self._bounds_of = None
         self._last = None   # the last grid bounded and its HullValues (a refinement bounds only its new segments)
         self._covers = None  # what decided the bounds of the first grid bounded (its refinement's frames from it)
+        self._prepared = None  # the grid prepare() bounded
 
     def start(self, plan: Plan) -> Plan:
         """The grid to begin with. A plan already at the grid cap leaves the refinement no room, so every
@@ -52,7 +54,18 @@ class _RendererGeometry:
         return Plan(plan.method, plan.axis, plan.radius, float(np.diff(alphas).max()), len(alphas), alphas, plan.unit,
                     dict(plan.details, thinned_from=n))
 
+    def prepare(self, plan: Plan) -> None:
+        """Along a translation the grid to begin with is bounded first: its frames, its refinement's and the
+        refinement's bounds then come from what bounded it (:class:`.surfel_bounds.SegmentCovers`; rotations:
+        the renderer renders, the refined grid is bounded from every surfel)."""
+        if self.renderer.axis in TRANSLATIONS:
+            self.bounds(plan)
+            self._prepared = plan.alphas
+
     def frames(self, plan: Plan) -> np.ndarray:
+        covers = self._covers
+        if covers is not None and covers.grid[0] <= plan.alphas[0] and plan.alphas[-1] <= covers.grid[-1]:
+            return covers.render_batch(plan.alphas).cpu().numpy()
         return self.renderer.render_batch(plan.alphas).cpu().numpy()
 
     def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
@@ -66,7 +79,10 @@ class _RendererGeometry:
         # one sweep over the plan's range bounds its grid here, the new segments of a refinement of it (the
         # bounds of a segment depend on its ends only) and, later, the frontier's finer segments
         g = plan.alphas
-        if self._last is None or (self._last[0][0], self._last[0][-1]) != (g[0], g[-1]):
+        fresh = (self._last is not None and self._covers is None and self._last[0] is self._prepared
+                 and not np.array_equal(self._last[0], g))
+        if self._last is None or (self._last[0][0], self._last[0][-1]) != (g[0], g[-1]) or fresh:
+            # (fresh: the grid prepare() bounded kept no covers; this one is bounded anew and keeps its own)
             self._bounds_of = hulls_within(self.renderer, float(g[0]), float(g[-1]), max_bytes=bounds_bytes(self.config))
             # the grid's first surely covering surfels and candidates are kept (within a quarter of the bounds' memory
             # ceiling, at most COVERS_BYTES): the frames of a refinement of it, all inside its segments, are decided
@@ -75,11 +91,15 @@ class _RendererGeometry:
             self._last = (g, self._bounds_of(g, covers))
             self._covers = None if covers.dropped else covers
         elif not np.array_equal(self._last[0], g):
-            # the refinement's new segments, each inside one of the grid's, bounded from its covers where they
-            # decide them (a translation: SegmentCovers.decide); then the covers are released
             covers, self._covers = self._covers, None
-            bounds_of = self._bounds_of if covers is None else functools.partial(self._bounds_of, parent=covers)
-            self._last = (g, refined_hulls(bounds_of, *self._last, g))
+            if covers is not None and covers.decides(g):
+                # a translation: every segment of the refinement, inside one of the grid's, bounded from its covers
+                # (SegmentCovers.decide), and what decided them kept in turn (a further refinement's frames and bounds)
+                finer = SegmentCovers(self.renderer, g, min(COVERS_BYTES, bounds_bytes(self.config) // 4))
+                self._last = (g, self._bounds_of(g, finer, parent=covers))
+                self._covers = None if finer.dropped else finer
+            else:   # the refinement's new segments bounded from every surfel (the covers are released)
+                self._last = (g, refined_hulls(self._bounds_of, *self._last, g))
         return self._last[1]
 
     def frontier(self, anchor_frames: np.ndarray, R: np.ndarray, alphas: np.ndarray, covered: np.ndarray,
@@ -101,6 +121,9 @@ class _FixedGeometry:
 
     def start(self, plan: Plan) -> Plan:
         return plan
+
+    def prepare(self, plan: Plan) -> None:
+        pass
 
     def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
                keep: tuple[float, float] | None = None, share: float = 1.0) -> tuple[Plan, np.ndarray]:
@@ -286,6 +309,9 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     total_work = config.n0 + budget_samples
     t0 = time.perf_counter()
     plan = geometry.start(plan)
+    geometry.prepare(plan)
+    timings = dict(timings, bounds=timings.get("bounds", 0.0) + time.perf_counter() - t0)
+    t0 = time.perf_counter()
     frames = geometry.frames(plan)
     t_render = timings.get("render", 0.0) + time.perf_counter() - t0
     zero = int(np.searchsorted(plan.alphas, 0.0))  # the selection frame: alpha = 0 is on every grid

@@ -223,13 +223,21 @@ class _HullSweep(FootprintSweep):
         ``keep = (covers, s)``: their first surely covering surfels and candidates go to that
         :class:`SegmentCovers` as its segments ``s ..``; ``parent``: the covers of a coarser grid whose segments
         hold these (:meth:`SegmentCovers.decide`, where it applies), the same values."""
-        r = self.r
         g = np.asarray(g, dtype=np.float64)
-        B, P = len(g) - 1, self.P
-        H, W = r.intr.height, r.intr.width
+        B = len(g) - 1
         if parent is not None and parent.decides(g):
             sure_first, q, cp = parent.decide(self, g)
-            return self._values(B, sure_first, q, cp)
+        else:
+            sure_first, q, cp = self._decide(g)
+        if keep is not None:
+            keep[0].add(keep[1], sure_first, q, cp)
+        return self._values(B, sure_first, q, cp)
+
+    def _decide(self, g) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The first surely covering ranks (B H W,) and candidates of the segments of ``g`` from every surfel."""
+        r = self.r
+        B = len(g) - 1
+        H, W = r.intr.height, r.intr.width
         # candidates: possibly covering at some alpha of the segment, and among them the surely covering ones
         # (the sure box lies inside the sweep box, sure_drawn implies maybe): the first surely covering surfel in
         # occlusion order (its rank; P: none) per segment and native pixel hides every later surfel throughout
@@ -238,10 +246,7 @@ class _HullSweep(FootprintSweep):
         # where nothing else can be, decided once for the batch from where the footprints can be over it)
         sure_first, q, cp = first_covers(lambda: self.union(float(g[0]), float(g[-1])), lambda sub: _segment_boxes(*self.ranges(g, sub), H, W),
                                          B, EDGE_EPS, -EDGE_EPS, r.rank, r.samples, covered_pairs, candidates=True, policy=self.policy)
-        sure_first = sure_first.view(-1)
-        if keep is not None:
-            keep[0].add(keep[1], sure_first, q, cp)
-        return self._values(B, sure_first, q, cp)
+        return sure_first.view(-1), q, cp
 
     def _values(self, B: int, sure_first: torch.Tensor, q: torch.Tensor, cp: torch.Tensor):
         """:meth:`segments`' values of ``B`` segments from their first surely covering ranks (B H W,) and
