@@ -7,6 +7,7 @@ small keeps nothing; and the certificates of the anchors' path are those of rend
 refinement pose and segment from every surfel."""
 from __future__ import annotations
 
+import functools
 from dataclasses import replace
 
 import numpy as np
@@ -259,13 +260,21 @@ def test_covers_kept_from_the_parents_covers_are_those_from_every_surfel(axis):
     rank and candidates before it as when bounded from every surfel: its own refinement's frames and bounds come
     from them."""
     rng, r, grid, covers = _grid_and_covers(axis, 3, extra=np.array([[0.0, 0.0, 0.01]]))
-    fine = _refined(rng, grid)
+    split = np.arange(0, len(grid) - 1, 2)   # every other segment split, the rest kept
+    fine = np.union1d(grid, grid[split] + (grid[split + 1] - grid[split]) * rng.uniform(0.0, 1.0, len(split)))
     b = grid[-1]
-    kept = [SegmentCovers(r, fine, BIG) for _ in range(2)]
-    hulls_within(r, -b, b)(fine, kept[0], parent=covers)
-    hulls_within(r, -b, b)(fine, kept[1])
-    assert np.array_equal(kept[0].first.numpy(), kept[1].first.numpy()) and kept[0].where.numel() > 0
+    bounds_of = hulls_within(r, -b, b)
+    kept = [SegmentCovers(r, fine, BIG) for _ in range(3)]
+    every = bounds_of(fine, kept[0])
+    bounds_of(fine, kept[1], parent=covers)
+    # as the anchors' path does it: the segments the refinement keeps copied (bounds and covers), the new ones decided
+    old = bounds_of(grid)
+    refined = anchored.refined_hulls(functools.partial(bounds_of, parent=covers), grid, old, fine, (covers, kept[2]))
+    for name in ("lo", "hi", "constant"):
+        np.testing.assert_array_equal(getattr(refined, name), getattr(every, name))
     pairs = [sorted(zip(c.where.tolist(), c.point.tolist())) for c in kept]
-    assert pairs[0] == pairs[1]
+    assert kept[0].where.numel() > 0
+    for c, p in zip(kept[1:], pairs[1:]):
+        assert np.array_equal(c.first.numpy(), kept[0].first.numpy()) and p == pairs[0]
     poses = _poses(rng, fine)
-    np.testing.assert_array_equal(kept[0].render_batch(poses).numpy(), r.render_batch(poses).numpy())
+    np.testing.assert_array_equal(kept[2].render_batch(poses).numpy(), r.render_batch(poses).numpy())

@@ -93,10 +93,11 @@ class _RendererGeometry:
         elif not np.array_equal(self._last[0], g):
             covers, self._covers = self._covers, None
             if covers is not None and covers.decides(g):
-                # a translation: every segment of the refinement, inside one of the grid's, bounded from its covers
-                # (SegmentCovers.decide), and what decided them kept in turn (a further refinement's frames and bounds)
+                # a translation: the refinement's new segments, each inside one of the grid's, bounded from its covers
+                # (SegmentCovers.decide), and what decided every segment kept in turn (a kept segment's copied): a
+                # further refinement's frames and bounds come from them
                 finer = SegmentCovers(self.renderer, g, min(COVERS_BYTES, bounds_bytes(self.config) // 4))
-                self._last = (g, self._bounds_of(g, finer, parent=covers))
+                self._last = (g, refined_hulls(functools.partial(self._bounds_of, parent=covers), *self._last, g, (covers, finer)))
                 self._covers = None if finer.dropped else finer
             else:   # the refinement's new segments bounded from every surfel (the covers are released)
                 self._last = (g, refined_hulls(self._bounds_of, *self._last, g))
@@ -168,10 +169,11 @@ def refine_for_target(renderer: SurfelRenderer, plan: Plan, frames: np.ndarray, 
     return plan, frames
 
 
-def refined_hulls(bounds_of, old_grid: np.ndarray, old, grid: np.ndarray):
+def refined_hulls(bounds_of, old_grid: np.ndarray, old, grid: np.ndarray, covers: tuple | None = None):
     """The HullValues of ``grid`` from those of ``old_grid`` (``old``): a segment of ``grid`` that is a segment
     of ``old_grid`` keeps its bounds (they depend on its two ends only); the runs of new segments are bounded
-    by ``bounds_of`` (:func:`.imaging.hulls_within` over the same range)."""
+    by ``bounds_of`` (:func:`.imaging.hulls_within` over the same range). ``covers = (old's, grid's)``
+    (:class:`.surfel_bounds.SegmentCovers`): the grid's are filled, a kept segment's copied from the old."""
     S = len(grid) - 1
     i = np.searchsorted(old_grid, grid[:-1])
     ok = i < len(old_grid) - 1
@@ -181,13 +183,18 @@ def refined_hulls(bounds_of, old_grid: np.ndarray, old, grid: np.ndarray):
     hi = np.empty_like(lo)
     constant = np.empty((S,) + old.constant.shape[1:], bool)
     lo[kept], hi[kept], constant[kept] = old.lo[i[kept]], old.hi[i[kept]], old.constant[i[kept]]
+    if covers is not None:
+        for k in np.flatnonzero(kept).tolist():
+            covers[1].adopt(k, covers[0], int(i[k]))
     new = np.flatnonzero(~kept)
     if len(new):
         starts = new[np.r_[True, np.diff(new) > 1]]
         ends = new[np.r_[np.diff(new) > 1, True]] + 1
         for s, e in zip(starts, ends):
-            part = bounds_of(grid[s:e + 1])
+            part = bounds_of(grid[s:e + 1]) if covers is None else bounds_of(grid[s:e + 1], covers[1], at=int(s))
             lo[s:e], hi[s:e], constant[s:e] = part.lo, part.hi, part.constant
+    if covers is not None:
+        covers[1].close()
     return HullValues(grid, lo, hi, constant, dict(old.details, segments=S))
 
 

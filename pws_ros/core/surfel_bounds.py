@@ -175,17 +175,19 @@ def hulls_within(renderer: SurfelRenderer, lo: float, hi: float, *, max_bytes: i
     bounded in batches of segments by one sweep set up once over ``[lo, hi]``; for grids chosen one after
     another (:func:`.coverage.frontier_reach`) as for one whole plan (:func:`segment_hulls`). A grid
     whose bounds need more than ``max_bytes`` is refused. ``hulls(g, covers)`` also keeps what decided the
-    bounds in ``covers`` (a :class:`SegmentCovers` of ``g``: frames inside the grid from it); ``hulls(g, parent=covers)``
-    bounds segments inside those of a grid bounded before from its covers (:meth:`SegmentCovers.decide`)."""
+    bounds in ``covers`` (a :class:`SegmentCovers` of ``g``: frames inside the grid from it; ``at``: as its segments
+    ``at ..``, a piece of its grid, closed by the caller); ``hulls(g, parent=covers)`` bounds segments inside those
+    of a grid bounded before from its covers (:meth:`SegmentCovers.decide`)."""
     sweep = _HullSweep(renderer, float(lo), float(hi))
     h, w = renderer.imaging.out_shape
 
-    def hulls(g, covers: "SegmentCovers | None" = None, parent: "SegmentCovers | None" = None) -> HullValues:
+    def hulls(g, covers: "SegmentCovers | None" = None, parent: "SegmentCovers | None" = None, at: int | None = None) -> HullValues:
         g = np.asarray(g, dtype=np.float64)
         require(len(g) >= 2 and lo <= g[0] and g[-1] <= hi and bool(np.all(np.diff(g) > 0)),
                 f"grid {g!r} is not increasing inside [{lo!r}, {hi!r}]")
         S = len(g) - 1
-        require(covers is None or np.array_equal(covers.grid, g), "internal: covers of another grid")
+        require(covers is None or np.array_equal(covers.grid if at is None else covers.grid[at:at + S + 1], g),
+                "internal: covers of another grid")
         need = 2 * S * h * w * 3 * 4
         require(need <= max_bytes, f"bounds of {S} segments at {w}x{h} need {need / 2**20:.0f} MiB, more than "
                                    f"{max_bytes / 2**20:.0f} MiB: use fewer partitions")
@@ -194,8 +196,8 @@ def hulls_within(renderer: SurfelRenderer, lo: float, hi: float, *, max_bytes: i
         constant = np.empty((S, h, w), bool)
         for s in range(0, S, sweep.batch):
             e = min(S, s + sweep.batch)
-            l_[s:e], h_[s:e], constant[s:e] = sweep.segments(g[s:e + 1], None if covers is None else (covers, s), parent)
-        if covers is not None:
+            l_[s:e], h_[s:e], constant[s:e] = sweep.segments(g[s:e + 1], None if covers is None else (covers, (at or 0) + s), parent)
+        if covers is not None and at is None:
             covers.close()
         return HullValues(g, l_, h_, constant, {"surfels": renderer.num_points, "segments": S})
 
@@ -328,7 +330,20 @@ class SegmentCovers:
         self.first[s:s + B] = sure_first.view(B, HW)
         before = self.r.rank[cp] < sure_first[q]   # the first surely covering surfel itself needs no test
         self._parts.append((q[before] + s * HW, cp[before]))
-        self.used += 16 * int(before.sum())
+        self._count(int(before.sum()))
+
+    def adopt(self, k: int, other: "SegmentCovers", j: int) -> None:
+        """Segment ``k`` is segment ``j`` of ``other`` (the same ends): its covers, copied."""
+        if self.dropped:
+            return
+        HW = self.first.shape[1]
+        a, b = other.starts[j], other.starts[j + 1]
+        self.first[k] = other.first[j]
+        self._parts.append((other.where[a:b] + (k - j) * HW, other.point[a:b]))
+        self._count(b - a)
+
+    def _count(self, candidates: int) -> None:
+        self.used += 16 * int(candidates)
         # close() sorts the candidates: at its peak their pieces, one concatenation, the order and the sorted copy,
         # under four times their size (the first ranks are not copied)
         if self.used + 3 * (self.used - 4 * self.first.numel()) > self.max_bytes:
