@@ -198,6 +198,13 @@ def refined_hulls(bounds_of, old_grid: np.ndarray, old, grid: np.ndarray, covers
     return HullValues(grid, lo, hi, constant, dict(old.details, segments=S))
 
 
+@functools.lru_cache(maxsize=65536)
+def _joint_target(k0: int, n0: int, m: int, k: int, n: int, sigma: float, alpha: float) -> float:
+    """The target of a joint first look of ``m`` samples for ``k`` anchors (:func:`_planned`; remembered across
+    frames: a planning value of integers and the configuration only)."""
+    return predicted_target(planned_votes(joint_rate(k0, n0, k), m, n0), m, sigma, joint_looks(m, n).level(0, alpha, k))
+
+
 def _planned(k0: int, config: CertifyConfig) -> tuple[Callable[[int], Looks], int, Callable[[int], float]]:
     """The plans of :func:`placement` before its weak-frame fallback."""
     n0, n, sigma, alpha = int(config.n0), int(config.n), float(config.sigma), float(config.alpha)
@@ -213,13 +220,25 @@ def _planned(k0: int, config: CertifyConfig) -> tuple[Callable[[int], Looks], in
         return fixed, int(config.num_anchors), individual
     most = max(1, budget // min(int(config.n_first), n))
 
+    def target_at(m: int, k: int) -> float:
+        return _joint_target(int(k0), n0, int(m), int(k), n, sigma, alpha)
+
+    @functools.lru_cache(maxsize=None)
+    def first_of(k: int) -> int:
+        # the first look's size: of those the budgets of 1 .. num_anchors anchors give k anchors, the one predicting the
+        # largest target (of equal ones the largest). A larger budget can always plan as a smaller one, so the target
+        # of k anchors never decreases as num_anchors grows (issue 34, item 2: a full look of n samples can predict
+        # less than a smaller joint look, its planned votes the 3/4 quantile of their posterior predictive)
+        k = max(1, int(k))
+        sizes = {min(n, max(1, j * n // k)) for j in range(1, int(config.num_anchors) + 1)}
+        sizes = {m for m in sizes if m >= min(int(config.n_first), n)} | {min(n, max(1, budget // k))}
+        return max(sizes, key=lambda m: (target_at(m, k), m))
+
     def looks_of(k: int) -> Looks:
-        return joint_looks(max(1, budget // max(1, int(k))), n)
+        return joint_looks(first_of(int(k)), n)
 
     def joint(k: int) -> float:
-        looks = looks_of(k)
-        m = int(looks.sizes[0])
-        return predicted_target(planned_votes(joint_rate(int(k0), n0, int(k)), m, n0), m, sigma, looks.level(0, alpha, int(k)))
+        return target_at(first_of(int(k)), int(k))
 
     m_most = int(looks_of(most).sizes[0])
     if joint(most) / m_most >= individual(int(config.num_anchors)) / n:
