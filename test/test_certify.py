@@ -346,7 +346,7 @@ def test_certify_returns_the_plan_it_rests_on_and_never_serialises_it():
 
 @pytest.mark.parametrize("axis", ["tz", "ry"])
 def test_refined_hulls_reuse_kept_segments_and_equal_a_fresh_bound(axis):
-    """The adaptive anchors refine a grid and bound only its new segments (core.anchored.refined_hulls): the
+    """The adaptive anchors refine a grid and bound only its new segments (core.anchor_geometry.refined_hulls): the
     result equals, bitwise, the bounds of the refined grid computed from scratch (a segment's bounds depend
     on its two ends only), also where new segments come in several runs."""
     from pws_ros.core.camera import CameraIntrinsics

@@ -568,7 +568,7 @@ def test_covered_run_is_the_run_around_the_centre():
 
 
 def test_memory_ceiling_keeps_the_refined_grid_small_instead_of_failing(monkeypatch):
-    import pws_ros.core.anchored as anchored_mod
+    import pws_ros.core.anchor_geometry as geometry_mod
     import pws_ros.core.certify as certify_mod
     from conftest import MeanThresholdNet
     from pws_ros.core.model import load_model, save_model
@@ -578,8 +578,8 @@ def test_memory_ceiling_keeps_the_refined_grid_small_instead_of_failing(monkeypa
     cfg = certify_mod.CertifyConfig(n0=16, n=32, max_memory_mb=64)
     im = make_imaging("surfel", CAM, (3, 4), background=0.5, border=0)
     # pretend a segment takes a tenth of the bounds' share: at most 10 segments fit
-    # (the adaptive anchors' grid cap, core.anchored.grid_cap, reads it there)
-    monkeypatch.setattr(anchored_mod, "segment_bytes", lambda imaging: certify_mod.bounds_bytes(cfg) // 10)
+    # (the adaptive anchors' grid cap, core.anchor_geometry.grid_cap, reads it there)
+    monkeypatch.setattr(geometry_mod, "segment_bytes", lambda imaging: certify_mod.bounds_bytes(cfg) // 10)
     import tempfile
     from pathlib import Path
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-import pws_ros.core.anchored as anchored
+import pws_ros.core.anchor_geometry as anchor_geometry
 import pws_ros.core.surfel as surfel_mod
 import pws_ros.core.surfel_bounds as sb
 import pws_ros.core.surfel_cover as cover
@@ -23,7 +23,7 @@ from pws_ros.core.cloud import Cloud
 from pws_ros.core.errors import PwsError
 from pws_ros.core.framing import SAMPLE_JITTER
 from pws_ros.core.imaging import SurfelRenderer, hulls_within, make_imaging
-from pws_ros.core.surfel_bounds import SegmentCovers
+from pws_ros.core.segment_covers import SegmentCovers
 from pws_ros.replay.ceiling import never_changing_model
 from test_anchor_budgets import _scene
 from test_surfel_cover import CAM, RADIUS, random_cloud
@@ -149,9 +149,9 @@ def test_the_anchors_path_certifies_as_when_every_pose_is_rendered(monkeypatch):
         model = never_changing_model(im.out_shape)
         cfg = CertifyConfig(sigma=0.5, n0=64, n=256, alpha=0.01, num_anchors=8, border=0, seed=seed)
         with_covers = certify(cloud, cam, model, axis, radius, "pws_of", cfg, imaging=im)
-        monkeypatch.setattr(anchored, "COVERS_BYTES", 0)
+        monkeypatch.setattr(anchor_geometry, "COVERS_BYTES", 0)
         rendered = certify(cloud, cam, model, axis, radius, "pws_of", replace(cfg), imaging=im)
-        monkeypatch.setattr(anchored, "COVERS_BYTES", 256 * 2**20)
+        monkeypatch.setattr(anchor_geometry, "COVERS_BYTES", 256 * 2**20)
         assert with_covers.status != "error" and _fields(with_covers) == _fields(rendered), (seed, axis)
     assert len(used) >= 2 and sum(used) > 0   # the covers did render (a second refinement happened)
     assert sum(decided) > 0                   # and bound the refinement on tz
@@ -269,7 +269,7 @@ def test_covers_kept_from_the_parents_covers_are_those_from_every_surfel(axis):
     bounds_of(fine, kept[1], parent=covers)
     # as the anchors' path does it: the segments the refinement keeps copied (bounds and covers), the new ones decided
     old = bounds_of(grid)
-    refined = anchored.refined_hulls(functools.partial(bounds_of, parent=covers), grid, old, fine, (covers, kept[2]))
+    refined = anchor_geometry.refined_hulls(functools.partial(bounds_of, parent=covers), grid, old, fine, (covers, kept[2]))
     for name in ("lo", "hi", "constant"):
         np.testing.assert_array_equal(getattr(refined, name), getattr(every, name))
     pairs = [sorted(zip(c.where.tolist(), c.point.tolist())) for c in kept]

@@ -87,7 +87,7 @@ def test_ranges_of_a_subset_are_those_of_the_whole(axis):
     fp, fs = r.footprints(torch.as_tensor(g)), r.footprints(torch.as_tensor(g), sub)
     for x, y in zip(fp, fs):
         assert torch.equal(x[..., sub], y)
-    for i in range(len(g)):   # one pose of a subset (surfel_bounds.SegmentCovers) against a batch of every surfel
+    for i in range(len(g)):   # one pose of a subset (segment_covers.SegmentCovers) against a batch of every surfel
         for x, y in zip(fp, r.footprints(torch.as_tensor(g[i:i + 1]), sub)):
             assert torch.equal(x[i:i + 1, sub], y)
 

@@ -1,6 +1,6 @@
 """The anchors' path of a certificate (``coverage: anchors``; docs/certificate.md, step 5): the grid
-refined for the target radius the selection samples predict (:func:`refine_for_target`, within
-:func:`grid_cap`; only new segments bounded, :func:`refined_hulls`), the placement of the anchors and its
+refined for the target radius the selection samples predict (:mod:`.anchor_geometry`: :func:`refine_for_target`,
+within :func:`grid_cap`; only new segments bounded, :func:`refined_hulls`), the placement of the anchors and its
 plan of looks (:func:`placement`; :func:`largest_target` and :func:`anchor_grid` for the four-process
 planner), and their estimation in looks (:func:`_certify_anchored`). The placement itself is
 :mod:`.anchors`, the looks :mod:`.sequential`; :mod:`.certify` dispatches here and re-exports these names."""
@@ -13,189 +13,19 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from .anchors import FIRST_ROUND_SHARE, REFINE_FRACTION, REFINE_ROUNDS, best_placement, planned_votes, predicted_target, refine_plan, target_radius
-from .certify_common import CertifyConfig, _conclude, bounds_bytes, segment_bytes
+from .anchor_geometry import _FixedGeometry, _RendererGeometry, grid_cap, refine_for_target, refined_hulls  # noqa: F401 (re-exported)
+from .anchors import FIRST_ROUND_SHARE, REFINE_ROUNDS, best_placement, planned_votes, predicted_target, target_radius
+from .certify_common import CertifyConfig, _conclude
 from .cloud import Cloud
-from .coverage import (FRONTIER_PARTS, FRONTIER_ROUNDS, AdaptiveAnchorsRule, cohen_radii, covered_run, frontier_reach, packing_bound,
-                       segment_covers)
+from .coverage import FRONTIER_PARTS, FRONTIER_ROUNDS, AdaptiveAnchorsRule, cohen_radii, covered_run, packing_bound
 from .distance_rows import DistanceRows
 from .errors import require
-from .imaging import HullValues, Imaging, SurfelRenderer, hulls_within, make_renderer
-from .motion import TRANSLATIONS
-from .surfel_bounds import SegmentCovers
+from .imaging import Imaging, make_renderer
 from .model import LoadedModel
 from .partition import Plan
 from .result import Certificate
 from .sequential import Looks, estimate, joint_looks, joint_rate, single
 from .smoothing import SmoothedClassifier
-
-
-class _RendererGeometry:
-    """What the adaptive anchors need of the imaging model, from the renderer (pipeline, replay,
-    ``pws certify``): frames of the plan, the plan refined for the target, bounds of any grid inside
-    the plan's range, hence the frontier refinement."""
-
-    def __init__(self, renderer: SurfelRenderer, config: CertifyConfig):
-        self.renderer, self.config = renderer, config
-        self._bounds_of = None
-        self._last = None   # the last grid bounded and its HullValues (a refinement bounds only its new segments)
-        self._covers = None  # what decided the bounds of the first grid bounded (its refinement's frames from it)
-        self._prepared = None  # the grid prepare() bounded
-
-    def start(self, plan: Plan) -> Plan:
-        """The grid to begin with. A plan already at the grid cap leaves the refinement no room, so every
-        other point is dropped (0 and both ends kept): the refinement puts points back where neighbouring
-        frames differ by more than the target allows. Only the grid's tightness depends on it."""
-        n = len(plan.alphas)
-        if n < max(5, grid_cap(self.renderer.imaging, self.config)):
-            return plan
-        centre = int(np.searchsorted(plan.alphas, 0.0))
-        alphas = plan.alphas[np.union1d(np.arange(centre % 2, n, 2), [0, n - 1])]
-        return Plan(plan.method, plan.axis, plan.radius, float(np.diff(alphas).max()), len(alphas), alphas, plan.unit,
-                    dict(plan.details, thinned_from=n))
-
-    def prepare(self, plan: Plan) -> None:
-        """Along a translation the grid to begin with is bounded first: its frames, its refinement's and the
-        refinement's bounds then come from what bounded it (:class:`.surfel_bounds.SegmentCovers`; rotations:
-        the renderer renders, the refined grid is bounded from every surfel)."""
-        if self.renderer.axis in TRANSLATIONS:
-            self.bounds(plan)
-            self._prepared = plan.alphas
-
-    def frames(self, plan: Plan) -> np.ndarray:
-        covers = self._covers
-        if covers is not None and covers.grid[0] <= plan.alphas[0] and plan.alphas[-1] <= covers.grid[-1]:
-            return covers.render_batch(plan.alphas).cpu().numpy()
-        return self.renderer.render_batch(plan.alphas).cpu().numpy()
-
-    def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
-               keep: tuple[float, float] | None = None, share: float = 1.0) -> tuple[Plan, np.ndarray]:
-        covers = self._covers
-        inside = covers is not None and covers.grid[0] <= plan.alphas[0] and plan.alphas[-1] <= covers.grid[-1]
-        return refine_for_target(self.renderer, plan, frames, target, max_anchors, self.config, keep=keep, share=share,
-                                 render=covers.render_batch if inside else None)
-
-    def bounds(self, plan: Plan):
-        # one sweep over the plan's range bounds its grid here, the new segments of a refinement of it (the
-        # bounds of a segment depend on its ends only) and, later, the frontier's finer segments
-        g = plan.alphas
-        fresh = (self._last is not None and self._covers is None and self._last[0] is self._prepared
-                 and not np.array_equal(self._last[0], g))
-        if self._last is None or (self._last[0][0], self._last[0][-1]) != (g[0], g[-1]) or fresh:
-            # (fresh: the grid prepare() bounded kept no covers; this one is bounded anew and keeps its own)
-            self._bounds_of = hulls_within(self.renderer, float(g[0]), float(g[-1]), max_bytes=bounds_bytes(self.config))
-            # the grid's first surely covering surfels and candidates are kept (within a quarter of the bounds' memory
-            # ceiling, at most COVERS_BYTES): the frames of a refinement of it, all inside its segments, are decided
-            # from them (.surfel_bounds.SegmentCovers)
-            covers = SegmentCovers(self.renderer, g, min(COVERS_BYTES, bounds_bytes(self.config) // 4))
-            self._last = (g, self._bounds_of(g, covers))
-            self._covers = None if covers.dropped else covers
-        elif not np.array_equal(self._last[0], g):
-            covers, self._covers = self._covers, None
-            if covers is not None and covers.decides(g):
-                # a translation: the refinement's new segments, each inside one of the grid's, bounded from its covers
-                # (SegmentCovers.decide), and what decided every segment kept in turn (a kept segment's copied): a
-                # further refinement's frames and bounds come from them
-                finer = SegmentCovers(self.renderer, g, min(COVERS_BYTES, bounds_bytes(self.config) // 4))
-                self._last = (g, refined_hulls(functools.partial(self._bounds_of, parent=covers), *self._last, g, (covers, finer)))
-                self._covers = None if finer.dropped else finer
-            else:   # the refinement's new segments bounded from every surfel (the covers are released)
-                self._last = (g, refined_hulls(self._bounds_of, *self._last, g))
-        return self._last[1]
-
-    def frontier(self, anchor_frames: np.ndarray, R: np.ndarray, alphas: np.ndarray, covered: np.ndarray,
-                 centre: int) -> tuple[float, list[float]]:
-        return frontier_reach(segment_covers(self._bounds_of, anchor_frames, R), alphas, covered, centre,
-                              rounds=int(self.config.frontier_rounds))
-
-
-class _FixedGeometry:
-    """The same from frames and bounds received for a fixed grid (the four-process certifier; the planner
-    refined the grid for the largest possible target, :func:`anchor_grid`): nothing is refined further,
-    and a covered run that stops inside a segment stops at its grid point (no frontier refinement)."""
-
-    def __init__(self, frames: np.ndarray, hulls):
-        self._frames, self._hulls = frames, hulls
-
-    def frames(self, plan: Plan) -> np.ndarray:
-        return self._frames
-
-    def start(self, plan: Plan) -> Plan:
-        return plan
-
-    def prepare(self, plan: Plan) -> None:
-        pass
-
-    def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
-               keep: tuple[float, float] | None = None, share: float = 1.0) -> tuple[Plan, np.ndarray]:
-        return plan, frames
-
-    def bounds(self, plan: Plan):
-        return self._hulls
-
-    frontier = None
-
-
-COVERS_BYTES = 256 * 2**20   # the most a grid's kept covers may take (4 bytes per segment and native pixel, 16 per candidate)
-
-
-def grid_cap(imaging: Imaging, config: CertifyConfig) -> int:
-    """The most grid points a refined plan may have: ``max_partitions``, and as many frames and segment
-    bounds as the memory ceiling holds (:func:`.certify_common.bounds_bytes`)."""
-    return min(int(config.max_partitions), int(bounds_bytes(config) // max(1, segment_bytes(imaging))))
-
-
-def refine_for_target(renderer: SurfelRenderer, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
-                      config: CertifyConfig, reserve: int = 0, keep: tuple[float, float] | None = None,
-                      share: float = 1.0, render: Callable[[np.ndarray], torch.Tensor] | None = None) -> tuple[Plan, np.ndarray]:
-    """The plan refined where consecutive frames differ by more than ``target / REFINE_FRACTION``
-    (:func:`.anchors.refine_plan`), and its frames (only the new poses rendered). Anchors cover about 2
-    target radii of rendered path each: no refinement farther than the budget reaches; the refined grid
-    stays within :func:`grid_cap` less ``reserve`` points (never below the plan's own size) and adds at
-    most ``share`` of the room that leaves. One round; :func:`_certify_anchored` asks for more where the
-    anchors fall short. ``render``: the new poses' frames (default the renderer's; the same frames from
-    :class:`.surfel_bounds.SegmentCovers` of a bounded grid holding them)."""
-    coarse = plan
-    room = max(0, grid_cap(renderer.imaging, config) - int(reserve) - len(frames))
-    plan = refine_plan(plan, frames, target / REFINE_FRACTION, len(frames) + int(share * room),
-                       reach=(max_anchors + 1) * target, keep=keep)
-    if len(plan.alphas) != len(frames):  # render only the new poses
-        old = np.searchsorted(plan.alphas, coarse.alphas)
-        new = np.setdiff1d(np.arange(len(plan.alphas)), old)
-        full = np.empty((len(plan.alphas),) + frames.shape[1:], dtype=frames.dtype)
-        full[old] = frames
-        full[new] = (render or renderer.render_batch)(plan.alphas[new]).cpu().numpy()
-        frames = full
-    return plan, frames
-
-
-def refined_hulls(bounds_of, old_grid: np.ndarray, old, grid: np.ndarray, covers: tuple | None = None):
-    """The HullValues of ``grid`` from those of ``old_grid`` (``old``): a segment of ``grid`` that is a segment
-    of ``old_grid`` keeps its bounds (they depend on its two ends only); the runs of new segments are bounded
-    by ``bounds_of`` (:func:`.imaging.hulls_within` over the same range). ``covers = (old's, grid's)``
-    (:class:`.surfel_bounds.SegmentCovers`): the grid's are filled, a kept segment's copied from the old."""
-    S = len(grid) - 1
-    i = np.searchsorted(old_grid, grid[:-1])
-    ok = i < len(old_grid) - 1
-    kept = np.zeros(S, bool)
-    kept[ok] = (old_grid[i[ok]] == grid[:-1][ok]) & (old_grid[i[ok] + 1] == grid[1:][ok])
-    lo = np.empty((S,) + old.lo.shape[1:], old.lo.dtype)
-    hi = np.empty_like(lo)
-    constant = np.empty((S,) + old.constant.shape[1:], bool)
-    lo[kept], hi[kept], constant[kept] = old.lo[i[kept]], old.hi[i[kept]], old.constant[i[kept]]
-    if covers is not None:
-        for k in np.flatnonzero(kept).tolist():
-            covers[1].adopt(k, covers[0], int(i[k]))
-    new = np.flatnonzero(~kept)
-    if len(new):
-        starts = new[np.r_[True, np.diff(new) > 1]]
-        ends = new[np.r_[np.diff(new) > 1, True]] + 1
-        for s, e in zip(starts, ends):
-            part = bounds_of(grid[s:e + 1]) if covers is None else bounds_of(grid[s:e + 1], covers[1], at=int(s))
-            lo[s:e], hi[s:e], constant[s:e] = part.lo, part.hi, part.constant
-    if covers is not None:
-        covers[1].close()
-    return HullValues(grid, lo, hi, constant, dict(old.details, segments=S))
 
 
 @functools.lru_cache(maxsize=65536)

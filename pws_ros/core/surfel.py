@@ -191,7 +191,7 @@ class SurfelRenderer:
     def render_batch(self, alphas, ranks=None) -> torch.Tensor:
         """Frames ``(B, H, W, 3)`` float32 as handed to the noise (reduced, border masked); ``ranks(alphas)``:
         the rank of the surfel each native pixel shows, (B Hn Wn,) (default the renderer's own,
-        :meth:`first_ranks`; the same from :class:`.surfel_bounds.SegmentCovers`)."""
+        :meth:`first_ranks`; the same from :class:`.segment_covers.SegmentCovers`)."""
         a = _alphas(alphas, self.device)
         ranks = ranks or self.first_ranks
         out = [reduce_frames(self._shade(ranks(a[s:s + self.chunk_size])), self.imaging)

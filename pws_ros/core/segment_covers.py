@@ -1,0 +1,180 @@
+"""What decided the bounds of a grid's segments, kept per native pixel (:class:`SegmentCovers`): the frames
+of poses inside the grid and, along a translation, the bounds of the segments of its refinement follow from
+it instead of from every surfel, bit for bit (:mod:`.surfel_bounds` bounds the segments; test_segment_covers.py)."""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from .errors import require
+from .framing import EDGE_EPS
+from .motion import TRANSLATIONS
+from .surfel import SurfelRenderer, pixel_range
+from .surfel_bounds import _segment_boxes
+
+if TYPE_CHECKING:
+    from .surfel_bounds import _HullSweep
+
+
+class SegmentCovers:
+    """What decided the bounds of every segment of a grid, per native pixel: the first surfel (its rank;
+    ``P``: none) surely covering it throughout the segment and the candidates, every surfel that may
+    cover it somewhere in the segment, up to that one (:func:`.surfel_cover.first_covers`). Kept to decide
+    the renderer's frames at poses inside the grid (the grid's refinement) from them instead of from every
+    surfel (:meth:`render_batch`), and along a translation the bounds of the refinement's segments
+    (:meth:`decide`).
+
+    Why they are the renderer's frames bit for bit: at a pose inside a segment, a surfel the renderer finds
+    covering a pixel (its footprint at that pose, the pixel range and box tests of
+    :func:`.surfel.covered_pairs`, drawn there) has its footprint inside its sweep box over the segment and
+    may be drawn there, so it is an outer pair of the segment; the first surely covering surfel covers the
+    pixel at every pose of the segment and hides every later one. The pixel's winner is thus the least rank
+    of the first surely covering surfel and of the candidates before it that the renderer's own tests find
+    covering at the pose (the same tensors: the footprints of a subset are those of the whole, bit for bit;
+    ``P``: nothing covers). Both are the soundness of the bounds themselves (the module doc: footprint ranges
+    read at the segment's ends and split points, widened by ``EDGE_EPS``); and the footprints of a subset of
+    surfels at one pose are those the renderer computes for all of them at a batch of poses, bit for bit (its
+    own union path needs this too; test_surfel_cover.py). Only the candidates before the first surely
+    covering surfel are kept, within ``max_bytes`` (else nothing: ``dropped``, and the renderer renders).
+    Frames from them are compared with the renderer's in test_segment_covers.py, the certificates before and
+    after in docs/timings.md (session 18)."""
+
+    def __init__(self, renderer: SurfelRenderer, grid, max_bytes: int):
+        self.r = renderer
+        self.grid = np.asarray(grid, dtype=np.float64)
+        self.max_bytes = int(max_bytes)
+        S, HW = len(self.grid) - 1, renderer.intr.height * renderer.intr.width
+        self.used = 4 * S * HW     # bytes held: 4 per segment and native pixel, 16 per candidate
+        self.dropped = self.used > self.max_bytes   # nothing kept (the renderer renders then)
+        self.first = None if self.dropped else torch.empty((S, HW), dtype=torch.int32, device=renderer.device)
+        self._parts: list[tuple[torch.Tensor, torch.Tensor]] = []
+        self.where = self.point = self.starts = None
+
+    def add(self, s: int, sure_first: torch.Tensor, q: torch.Tensor, cp: torch.Tensor) -> None:
+        """Segments ``s ..``: ``sure_first`` (B H W,) ranks, candidates ``(q, cp)`` with ``q`` counted from segment ``s``."""
+        if self.dropped:
+            return
+        HW = self.first.shape[1]
+        B = len(sure_first) // HW
+        self.first[s:s + B] = sure_first.view(B, HW)
+        before = self.r.rank[cp] < sure_first[q]   # the first surely covering surfel itself needs no test
+        self._parts.append((q[before] + s * HW, cp[before]))
+        self._count(int(before.sum()))
+
+    def adopt(self, k: int, other: "SegmentCovers", j: int) -> None:
+        """Segment ``k`` is segment ``j`` of ``other`` (the same ends): its covers, copied."""
+        if self.dropped:
+            return
+        HW = self.first.shape[1]
+        a, b = other.starts[j], other.starts[j + 1]
+        self.first[k] = other.first[j]
+        self._parts.append((other.where[a:b] + (k - j) * HW, other.point[a:b]))
+        self._count(b - a)
+
+    def _count(self, candidates: int) -> None:
+        self.used += 16 * int(candidates)
+        # close() sorts the candidates: at its peak their pieces, one concatenation, the order and the sorted copy,
+        # under four times their size (the first ranks are not copied)
+        if self.used + 3 * (self.used - 4 * self.first.numel()) > self.max_bytes:
+            self.dropped, self.first, self._parts = True, None, []
+
+    def close(self) -> None:
+        """The candidates of every segment in order (where = segment * H * W + pixel)."""
+        if self.dropped:
+            return
+        S, HW = self.first.shape
+        dev = self.first.device
+        where = torch.cat([w for w, _ in self._parts]) if self._parts else torch.zeros(0, dtype=torch.long, device=dev)
+        point = torch.cat([p for _, p in self._parts]) if self._parts else torch.zeros(0, dtype=torch.long, device=dev)
+        order = torch.argsort(where)
+        self.where, self.point, self._parts = where[order], point[order], []
+        self.starts = torch.searchsorted(self.where, torch.arange(S + 1, device=dev) * HW).tolist()
+
+    def first_ranks(self, alphas: torch.Tensor) -> torch.Tensor:
+        """The rank of the surfel each native pixel shows at ``alphas`` (inside the grid), (B H W,): the renderer's
+        :meth:`.surfel.SurfelRenderer.first_ranks`.
+        Per segment, its first surely covering ranks lowered to those of its candidates' surfels covering
+        the pixel at the pose (any other pixel such a surfel covers has its first before it)."""
+        r, g = self.r, self.grid
+        a = alphas.cpu().numpy()
+        require(bool(np.all((g[0] <= a) & (a <= g[-1]))), f"alphas {a!r} outside the grid [{g[0]!r}, {g[-1]!r}]")
+        B, HW = len(a), self.first.shape[1]
+        k = np.clip(np.searchsorted(g, a, side="right") - 1, 0, len(g) - 2)
+        ranks = self.first[torch.as_tensor(k, device=self.first.device)].to(torch.long)   # (B, HW), a copy
+        for kk in np.unique(k).tolist():
+            at = np.flatnonzero(k == kk)
+            subset = torch.unique(self.point[self.starts[kk]:self.starts[kk + 1]], sorted=True)
+            if len(subset):
+                sel = torch.as_tensor(at, device=ranks.device)
+                ranks[sel] = r.least_covering(alphas[sel], ranks[sel].reshape(-1), subset).view(len(at), HW)
+        return ranks.view(-1)
+
+    def render_batch(self, alphas) -> torch.Tensor:
+        """The renderer's ``render_batch(alphas)`` for poses inside the grid, decided from the covers."""
+        return self.r.render_batch(alphas, ranks=self.first_ranks)
+
+    def decides(self, g) -> bool:
+        """Whether :meth:`decide` applies to the segments of the grid ``g``: kept covers, a translation, each segment
+        inside one of the covers' grid."""
+        if self.dropped or self.where is None or self.r.axis not in TRANSLATIONS:
+            return False
+        g, G = np.asarray(g, dtype=np.float64), self.grid
+        k = np.searchsorted(G, g[:-1], side="right") - 1
+        return bool(np.all((k >= 0) & (k < len(G) - 1)) and np.all(g[1:] <= G[np.minimum(k + 1, len(G) - 1)]))
+
+    def decide(self, sweep: "_HullSweep", g) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """What :func:`.surfel_cover.first_covers` gives the bounds of the segments of ``g`` (each inside a segment of
+        the covers' grid, a translation: :meth:`decides`), the first surely covering ranks (B H W,) and the
+        candidates ``(where, surfel)`` of rank below them, from the covers of the parent segments instead of
+        from every surfel.
+
+        Why it is the same. Along a translation the computed projections are monotone in ``alpha`` between split
+        events, bit for bit: ``u = cx + fx X / (Z - alpha)`` (tz) is a chain of float operations each monotone in
+        the one argument that moves (a subtraction, the reciprocal on one side of the pole, a fused or unfused
+        multiply-add), so a value at a new grid point lies between the values at the events or ends around it,
+        which are the parent's; the same for ``v``, the corner depths and the centre depth (and tx, ty). So a
+        child segment's sweep box lies inside its parent's and its sure box holds the parent's, bit for bit
+        (:func:`.surfel_bounds._segment_boxes`; a wild child is a wild parent), and so do the pixel ranges
+        :func:`.surfel.covered_pairs` enumerates (``ceil`` of an edge, monotone too). Hence a pair that may cover
+        in the child may in the parent (an outer pair of the parent); the parent's first surely covering surfel surely covers in
+        the child, so the child's first is at most the parent's; and every outer pair of the child of rank below
+        the parent's first is a kept candidate of the parent. The child's first and candidates are then those
+        among the parent's candidates that the bounds' own tests (boxes of the child from
+        :meth:`.surfel.FootprintSweep.ranges`, ``EDGE_EPS`` as :func:`.surfel_cover.first_covers` widens them)
+        find surely covering and maybe covering (its pixel range, box and mask, then the sure box and mask). Rotations mix two moving terms (``c X - s Z``): no such
+        argument, and they are bounded from every surfel."""
+        r, G = self.r, self.grid
+        g = np.asarray(g, dtype=np.float64)
+        B, HW = len(g) - 1, self.first.shape[1]
+        H, W = r.intr.height, r.intr.width
+        k = (np.searchsorted(G, g[:-1], side="right") - 1).tolist()
+        dev = self.first.device
+        first = self.first[torch.as_tensor(k, device=dev)].to(torch.long).view(-1)   # the parents' firsts, a copy
+        where = torch.cat([self.where[self.starts[kk]:self.starts[kk + 1]] + (b - kk) * HW for b, kk in enumerate(k)])
+        point = torch.cat([self.point[self.starts[kk]:self.starts[kk + 1]] for kk in k])
+        if not len(point):
+            return first, where, point
+        subset, loc = torch.unique(point, sorted=True, return_inverse=True)
+        outer, omask, inner, imask = _segment_boxes(*sweep.ranges(g, subset), H, W)        # (B, U) each
+        seg = torch.div(where, HW, rounding_mode="floor")
+        pix = where - seg * HW
+        su, sv = r.samples.su[pix], r.samples.sv[pix]
+        eps, ieps = EDGE_EPS, -EDGE_EPS
+        # the tests of .surfel.covered_pairs (as .surfel_cover.first_covers widens its boxes), pair by pair: the pixel
+        # range it enumerates (where the samples do not imply it, .surfel_cover.range_implied), the box and mask
+        u0, u1, v0, v1 = (x[seg, loc] for x in outer)
+        col, row = pix % W, torch.div(pix, W, rounding_mode="floor")
+        c0, c1, r0, r1 = pixel_range(u0, u1, v0, v1, eps, W, H)
+        possible = omask[seg, loc] & (c0 <= col) & (col < c1) & (r0 <= row) & (row < r1) \
+            & (u0 - eps <= su) & (su < u1 + eps) & (v0 - eps <= sv) & (sv < v1 + eps)
+        sure = possible & imask[seg, loc] & (inner[0][seg, loc] - ieps <= su) & (su < inner[1][seg, loc] + ieps) \
+            & (inner[2][seg, loc] - ieps <= sv) & (sv < inner[3][seg, loc] + ieps)
+        rk = r.rank[point]
+        first.scatter_reduce_(0, where[sure], rk[sure], reduce="amin", include_self=True)
+        keep = possible & (rk < first[where])
+        return first, where[keep], point[keep]
+
+
+__all__ = ["SegmentCovers"]
