@@ -17,7 +17,7 @@ Distances to any frame ``y`` are then bounded by ``sum max((lo - y)^2, (hi - y)^
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
@@ -28,9 +28,6 @@ from .framing import EDGE_EPS, SAFETY, VALUE_EPS, Imaging, block_mean64
 from .partition import validate_grid
 from .surfel import FootprintSweep, SurfelRenderer, covered_pairs
 from .surfel_cover import UnionPolicy, first_covers
-
-if TYPE_CHECKING:
-    from .segment_covers import SegmentCovers
 
 
 @dataclass
@@ -183,7 +180,7 @@ def hulls_within(renderer: SurfelRenderer, lo: float, hi: float, *, max_bytes: i
     sweep = _HullSweep(renderer, float(lo), float(hi))
     h, w = renderer.imaging.out_shape
 
-    def hulls(g, covers: "SegmentCovers | None" = None, parent: "SegmentCovers | None" = None, at: int | None = None) -> HullValues:
+    def hulls(g, covers=None, parent=None, at: int | None = None) -> HullValues:
         g = np.asarray(g, dtype=np.float64)
         require(len(g) >= 2 and lo <= g[0] and g[-1] <= hi and bool(np.all(np.diff(g) > 0)),
                 f"grid {g!r} is not increasing inside [{lo!r}, {hi!r}]")
@@ -222,7 +219,7 @@ class _HullSweep(FootprintSweep):
         """Segments per batch."""
         return max(1, HULL_BATCH_ELEMENTS // max(1, self.P))
 
-    def segments(self, g, keep=None, parent: "SegmentCovers | None" = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def segments(self, g, keep=None, parent=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``lo, hi`` (B, h, w, 3) float32 and ``constant`` (B, h, w) of the segments of the grid ``g``;
         ``keep = (covers, s)``: their first surely covering surfels and candidates go to that
         :class:`.segment_covers.SegmentCovers` as its segments ``s ..``; ``parent``: the covers of a coarser grid whose segments
