@@ -53,18 +53,22 @@ class _RendererGeometry:
             self.bounds(plan)
             self._prepared = plan.alphas
 
-    def frames(self, plan: Plan) -> np.ndarray:
+    def _render(self, alphas) -> Callable[[np.ndarray], torch.Tensor]:
+        """What renders poses of ``alphas``: the kept covers where their grid holds them, else the renderer."""
         covers = self._covers
-        if covers is not None and covers.grid[0] <= plan.alphas[0] and plan.alphas[-1] <= covers.grid[-1]:
-            return covers.render_batch(plan.alphas).cpu().numpy()
-        return self.renderer.render_batch(plan.alphas).cpu().numpy()
+        return covers.render_batch if covers is not None and covers.holds(alphas) else self.renderer.render_batch
+
+    def _new_covers(self, g: np.ndarray) -> SegmentCovers:
+        """Covers for the grid ``g``, within a quarter of the bounds' memory ceiling, at most COVERS_BYTES."""
+        return SegmentCovers(self.renderer, g, min(COVERS_BYTES, bounds_bytes(self.config) // 4))
+
+    def frames(self, plan: Plan) -> np.ndarray:
+        return self._render(plan.alphas)(plan.alphas).cpu().numpy()
 
     def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
                keep: tuple[float, float] | None = None, share: float = 1.0) -> tuple[Plan, np.ndarray]:
-        covers = self._covers
-        inside = covers is not None and covers.grid[0] <= plan.alphas[0] and plan.alphas[-1] <= covers.grid[-1]
         return refine_for_target(self.renderer, plan, frames, target, max_anchors, self.config, keep=keep, share=share,
-                                 render=covers.render_batch if inside else None)
+                                 render=self._render(plan.alphas))
 
     def bounds(self, plan: Plan):
         # one sweep over the plan's range bounds its grid here, the new segments of a refinement of it (the
@@ -78,7 +82,7 @@ class _RendererGeometry:
             # the grid's first surely covering surfels and candidates are kept (within a quarter of the bounds' memory
             # ceiling, at most COVERS_BYTES): the frames of a refinement of it, all inside its segments, are decided
             # from them (.segment_covers.SegmentCovers)
-            covers = SegmentCovers(self.renderer, g, min(COVERS_BYTES, bounds_bytes(self.config) // 4))
+            covers = self._new_covers(g)
             self._last = (g, self._bounds_of(g, covers))
             self._covers = None if covers.dropped else covers
         elif not np.array_equal(self._last[0], g):
@@ -87,7 +91,7 @@ class _RendererGeometry:
                 # a translation: the refinement's new segments, each inside one of the grid's, bounded from its covers
                 # (SegmentCovers.decide), and what decided every segment kept in turn (a kept segment's copied): a
                 # further refinement's frames and bounds come from them
-                finer = SegmentCovers(self.renderer, g, min(COVERS_BYTES, bounds_bytes(self.config) // 4))
+                finer = self._new_covers(g)
                 self._last = (g, refined_hulls(functools.partial(self._bounds_of, parent=covers), *self._last, g, (covers, finer)))
                 self._covers = None if finer.dropped else finer
             else:   # the refinement's new segments bounded from every surfel (the covers are released)

@@ -68,10 +68,10 @@ class SegmentCovers:
         if self.dropped:
             return
         HW = self.first.shape[1]
-        a, b = other.starts[j], other.starts[j + 1]
+        where, point = other._candidates(j)
         self.first[k] = other.first[j]
-        self._parts.append((other.where[a:b] + (k - j) * HW, other.point[a:b]))
-        self._count(b - a)
+        self._parts.append((where + (k - j) * HW, point))
+        self._count(len(point))
 
     def _count(self, candidates: int) -> None:
         self.used += 16 * int(candidates)
@@ -92,6 +92,24 @@ class SegmentCovers:
         self.where, self.point, self._parts = where[order], point[order], []
         self.starts = torch.searchsorted(self.where, torch.arange(S + 1, device=dev) * HW).tolist()
 
+    def _candidates(self, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Segment ``k``'s candidates (after :meth:`close`): ``where`` (= k H W + pixel) and surfel index."""
+        a, b = self.starts[k], self.starts[k + 1]
+        return self.where[a:b], self.point[a:b]
+
+    def holds(self, alphas) -> bool:
+        """Whether every pose of ``alphas`` lies inside the grid."""
+        a, g = np.asarray(alphas, dtype=np.float64), self.grid
+        return bool(np.all((g[0] <= a) & (a <= g[-1])))
+
+    def _parents(self, g: np.ndarray) -> np.ndarray | None:
+        """The segment of the grid holding each segment of the grid ``g`` (None: some segment lies in none)."""
+        G = self.grid
+        k = np.searchsorted(G, g[:-1], side="right") - 1
+        if np.all((k >= 0) & (k < len(G) - 1)) and np.all(g[1:] <= G[np.minimum(k + 1, len(G) - 1)]):
+            return k
+        return None
+
     def first_ranks(self, alphas: torch.Tensor) -> torch.Tensor:
         """The rank of the surfel each native pixel shows at ``alphas`` (inside the grid), (B H W,): the renderer's
         :meth:`.surfel.SurfelRenderer.first_ranks`.
@@ -99,13 +117,13 @@ class SegmentCovers:
         the pixel at the pose (any other pixel such a surfel covers has its first before it)."""
         r, g = self.r, self.grid
         a = alphas.cpu().numpy()
-        require(bool(np.all((g[0] <= a) & (a <= g[-1]))), f"alphas {a!r} outside the grid [{g[0]!r}, {g[-1]!r}]")
-        B, HW = len(a), self.first.shape[1]
+        require(self.holds(a), f"alphas {a!r} outside the grid [{g[0]!r}, {g[-1]!r}]")
+        HW = self.first.shape[1]
         k = np.clip(np.searchsorted(g, a, side="right") - 1, 0, len(g) - 2)
         ranks = self.first[torch.as_tensor(k, device=self.first.device)].to(torch.long)   # (B, HW), a copy
         for kk in np.unique(k).tolist():
             at = np.flatnonzero(k == kk)
-            subset = torch.unique(self.point[self.starts[kk]:self.starts[kk + 1]], sorted=True)
+            subset = torch.unique(self._candidates(kk)[1], sorted=True)
             if len(subset):
                 sel = torch.as_tensor(at, device=ranks.device)
                 ranks[sel] = r.least_covering(alphas[sel], ranks[sel].reshape(-1), subset).view(len(at), HW)
@@ -120,9 +138,7 @@ class SegmentCovers:
         inside one of the covers' grid."""
         if self.dropped or self.where is None or self.r.axis not in TRANSLATIONS:
             return False
-        g, G = np.asarray(g, dtype=np.float64), self.grid
-        k = np.searchsorted(G, g[:-1], side="right") - 1
-        return bool(np.all((k >= 0) & (k < len(G) - 1)) and np.all(g[1:] <= G[np.minimum(k + 1, len(G) - 1)]))
+        return self._parents(np.asarray(g, dtype=np.float64)) is not None
 
     def decide(self, sweep: "_HullSweep", g) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """What :func:`.surfel_cover.first_covers` gives the bounds of the segments of ``g`` (each inside a segment of
@@ -145,15 +161,16 @@ class SegmentCovers:
         :meth:`.surfel.FootprintSweep.ranges`, ``EDGE_EPS`` as :func:`.surfel_cover.first_covers` widens them)
         find surely covering and maybe covering (its pixel range, box and mask, then the sure box and mask). Rotations mix two moving terms (``c X - s Z``): no such
         argument, and they are bounded from every surfel."""
-        r, G = self.r, self.grid
+        r = self.r
         g = np.asarray(g, dtype=np.float64)
-        B, HW = len(g) - 1, self.first.shape[1]
+        HW = self.first.shape[1]
         H, W = r.intr.height, r.intr.width
-        k = (np.searchsorted(G, g[:-1], side="right") - 1).tolist()
+        k = self._parents(g).tolist()
         dev = self.first.device
         first = self.first[torch.as_tensor(k, device=dev)].to(torch.long).view(-1)   # the parents' firsts, a copy
-        where = torch.cat([self.where[self.starts[kk]:self.starts[kk + 1]] + (b - kk) * HW for b, kk in enumerate(k)])
-        point = torch.cat([self.point[self.starts[kk]:self.starts[kk + 1]] for kk in k])
+        parts = [self._candidates(kk) for kk in k]
+        where = torch.cat([w + (b - kk) * HW for b, (kk, (w, _)) in enumerate(zip(k, parts))])
+        point = torch.cat([p for _, p in parts])
         if not len(point):
             return first, where, point
         subset, loc = torch.unique(point, sorted=True, return_inverse=True)
