@@ -2,7 +2,7 @@
 for a target radius (:func:`refine_for_target`, within :func:`grid_cap`), the bounds of any grid inside the
 plan's range with only a refinement's new segments bounded (:func:`refined_hulls`), and the frontier's
 refinement; from the renderer (:class:`_RendererGeometry`: pipeline, replay, ``pws certify``; what bounded a grid
-kept to decide its refinement's frames and, along a translation, bounds, :class:`.segment_covers.SegmentCovers`)
+kept to decide its refinement's frames and bounds, :class:`.segment_covers.SegmentCovers`)
 or from frames and bounds received for a fixed grid (:class:`_FixedGeometry`: the four-process certifier)."""
 from __future__ import annotations
 
@@ -16,7 +16,6 @@ from .anchors import REFINE_FRACTION, refine_plan
 from .certify_common import CertifyConfig, bounds_bytes, segment_bytes
 from .coverage import frontier_reach, segment_covers
 from .imaging import HullValues, Imaging, SurfelRenderer, hulls_within
-from .motion import TRANSLATIONS
 from .partition import Plan
 from .segment_covers import SegmentCovers
 
@@ -46,12 +45,10 @@ class _RendererGeometry:
                     dict(plan.details, thinned_from=n))
 
     def prepare(self, plan: Plan) -> None:
-        """Along a translation the grid to begin with is bounded first: its frames, its refinement's and the
-        refinement's bounds then come from what bounded it (:class:`.segment_covers.SegmentCovers`; rotations:
-        the renderer renders, the refined grid is bounded from every surfel)."""
-        if self.renderer.axis in TRANSLATIONS:
-            self.bounds(plan)
-            self._prepared = plan.alphas
+        """The grid to begin with is bounded first: its frames, its refinement's and the refinement's bounds then
+        come from what bounded it (:class:`.segment_covers.SegmentCovers`)."""
+        self.bounds(plan)
+        self._prepared = plan.alphas
 
     def _render(self, alphas) -> Callable[[np.ndarray], torch.Tensor]:
         """What renders poses of ``alphas``: the kept covers where their grid holds them, else the renderer."""
@@ -88,7 +85,7 @@ class _RendererGeometry:
         elif not np.array_equal(self._last[0], g):
             covers, self._covers = self._covers, None
             if covers is not None and covers.decides(g):
-                # a translation: the refinement's new segments, each inside one of the grid's, bounded from its covers
+                # the refinement's new segments, each inside one of the grid's, bounded from its covers
                 # (SegmentCovers.decide), and what decided every segment kept in turn (a kept segment's copied): a
                 # further refinement's frames and bounds come from them
                 finer = self._new_covers(g)
