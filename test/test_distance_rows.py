@@ -187,3 +187,17 @@ def test_the_placement_threshold_is_above_every_rounding_of_a_squared_target():
     assert thr > t ** 2 and thr > t * t and thr > float(np.square(np.float64(t)))
     assert thr < t * t * (1 + 1e-9)
     assert _plan_sq([]) == 0.0 and _plan_sq([0.0, 0.0]) == 0.0
+
+
+def test_a_repeated_call_is_computed_once_and_returns_its_own_copy():
+    """The placements of several budgets read the same pieces: computed once, the same values, and a caller that
+    writes into what it got (DistanceRows.complete, max_min) changes no later answer."""
+    f, hv = _case(5, S=10, h=3, w=4)
+    d = DistanceRows(hv, f, float("inf"))
+    a = d.row(2, 0, 8)
+    want = hv.dist_sq(f[2], slice(0, 8))
+    assert np.array_equal(a, want) and d.exact_calls == 1
+    a[:] = -1.0
+    b = d.row(2, 0, 8)
+    assert np.array_equal(b, want) and d.exact_calls == 1
+    assert np.array_equal(d.row(2, 0, 4), hv.dist_sq(f[2], slice(0, 4))) and d.exact_calls == 2

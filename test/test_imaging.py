@@ -440,6 +440,12 @@ def test_block_mean_sums_float32_input_in_float64(seed, factor, spread, offset):
     assert got.dtype == np.float64
     np.testing.assert_array_equal(got, want + offset)
     np.testing.assert_array_equal(got, block_mean64(torch.as_tensor(x, dtype=torch.float64), im, offset).numpy())
+    # some output pixels alone (outside the border, in the order of the mask's nonzero): the same values
+    at = rng.random((2, h, w)) < 0.3
+    at[:, :by] = at[:, h - by:] = False
+    at[:, :, :bx] = at[:, :, w - bx:] = False
+    part = block_mean64(torch.as_tensor(x), im, offset, at=torch.as_tensor(at)).numpy()
+    np.testing.assert_array_equal(part, want[at] + offset)
 
 
 def test_binned_alpha_zero_frame_is_the_block_mean_of_the_camera_image():

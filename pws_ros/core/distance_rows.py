@@ -36,12 +36,18 @@ class DistanceRows:
         self.threshold_sq = float(threshold_sq)
         self.lower = _lower_bounds(hulls, frames)
         self.approx: set[tuple[int, int, int]] = set()   # (j, i0, i1) calls answered by the bound
-        self.exact_calls = 0
+        self.exact_calls = 0                            # exact rows computed
         self.bound_calls = 0                            # calls answered by the bound
+        # exact rows by call: the placements of several budgets (.anchors.best_placement) read the same pieces
+        self._exact: dict[tuple[int, int, int], np.ndarray] = {}
 
     def exact(self, j: int, i0: int, i1: int) -> np.ndarray:
-        self.exact_calls += 1
-        return self.hulls.dist_sq(self.frames[j], slice(i0, i1))
+        key = (int(j), int(i0), int(i1))
+        got = self._exact.get(key)
+        if got is None:
+            self.exact_calls += 1
+            got = self._exact[key] = self.hulls.dist_sq(self.frames[j], slice(i0, i1))
+        return got.copy()
 
     def row(self, j: int, i0: int = 0, i1: int | None = None) -> np.ndarray:
         S = self.hulls.num_segments

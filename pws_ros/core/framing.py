@@ -306,22 +306,19 @@ def reduce_frames(native: torch.Tensor, imaging: Imaging) -> torch.Tensor:
     return block_mean64(native, imaging).to(torch.float32)
 
 
-def block_mean64(x: torch.Tensor, im: Imaging, offset: float = 0.0) -> torch.Tensor:
+def block_mean64(x: torch.Tensor, im: Imaging, offset: float = 0.0, at: torch.Tensor | None = None) -> torch.Tensor:
     """Block mean in float64 of native images (B, Hn, Wn, 3) to the output size, border set to background,
     plus ``offset`` everywhere. ``x`` float32 or float64: every sum is taken in float64 (a float32 value
-    converts exactly), so both give the same result bit for bit."""
+    converts exactly), so both give the same result bit for bit. ``at`` (B, h, w) bool, true outside the border
+    only: the output pixels where it is true alone, (N, 3) in the order of ``at.nonzero()``, bit for bit those
+    values (the same sums in the same order)."""
     k = im.factor
     h, w = im.out_shape
-    if k > 1:  # the k*k strided slices summed in a fixed order (faster than a two-axis mean), then / k^2
-        blocks = x.view(x.shape[0], h, k, w, k, 3)
-        out = blocks[:, :, 0, :, 0].to(torch.float64, copy=True)
-        for i in range(k):
-            for j in range(k):
-                if i or j:
-                    out += blocks[:, :, i, :, j]
-        out /= float(k * k)
-    else:
-        out = x.to(torch.float64, copy=True)
+    if at is not None:
+        b, r, c = at.nonzero(as_tuple=True)
+        out = _block_sums(x.view(x.shape[0], h, k, w, k, 3)[b, r, :, c][:, None, :, None], k)   # (N, 1, k, 1, k, 3)
+        return (out.add_(offset) if offset else out).view(len(b), 3)
+    out = _block_sums(x.view(x.shape[0], h, k, w, k, 3), k)
     bx, by = im.border
     if bx:
         out[:, :, :bx] = im.background
@@ -331,6 +328,19 @@ def block_mean64(x: torch.Tensor, im: Imaging, offset: float = 0.0) -> torch.Ten
         out[:, h - by:] = im.background
     if offset:
         out += offset
+    return out
+
+
+def _block_sums(blocks: torch.Tensor, k: int) -> torch.Tensor:
+    """The means of ``blocks`` (B, h, k, w, k, 3) over their k x k pixels in float64: the k*k strided slices summed
+    in a fixed order (faster than a two-axis mean), then / k^2."""
+    out = blocks[:, :, 0, :, 0].to(torch.float64, copy=True)
+    for i in range(k):
+        for j in range(k):
+            if i or j:
+                out += blocks[:, :, i, :, j]
+    if k > 1:
+        out /= float(k * k)
     return out
 
 

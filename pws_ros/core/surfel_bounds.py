@@ -275,14 +275,18 @@ class _HullSweep(FootprintSweep):
             one[(b * h + torch.div(p, W * k, rounding_mode="floor")) * w + torch.div(p % W, k, rounding_mode="floor")] = False
             lo.scatter_reduce_(0, idx, vals, reduce="amin", include_self=True)
             hi.scatter_reduce_(0, idx, vals, reduce="amax", include_self=True)
-        lo_o = block_mean64(lo.view(B, H, W, 3), im, -VALUE_EPS).to(torch.float32)
-        hi_o = block_mean64(hi.view(B, H, W, 3), im, VALUE_EPS).to(torch.float32)
         one = one.view(B, h, w)
         bx, by = im.border
         if bx:
             one[:, :, :bx] = one[:, :, w - bx:] = True
         if by:
             one[:, :by] = one[:, h - by:] = True
+        # the block means of lo; those of hi differ only at the output pixels some native pixel of which changes
+        # (elsewhere lo == hi there, or the border: the same sums), taken there alone in the same order
+        mean = block_mean64(lo.view(B, H, W, 3), im)
+        lo_o = (mean - VALUE_EPS).to(torch.float32)
+        mean[~one] = block_mean64(hi.view(B, H, W, 3), im, at=~one)
+        hi_o = mean.add_(VALUE_EPS).to(torch.float32)
         return lo_o.cpu().numpy(), hi_o.cpu().numpy(), one.cpu().numpy()
 
 
