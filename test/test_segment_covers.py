@@ -136,8 +136,8 @@ def _fields(cert):
 
 
 def test_the_anchors_path_certifies_as_when_every_pose_is_rendered(monkeypatch):
-    """Where the first placement falls short, the refinement's frames come from the covers (and on tz its
-    bounds); the certificates are those of rendering and bounding from every surfel (COVERS_BYTES = 0:
+    """Where the first placement falls short, the refinement's frames and bounds come from the covers; the
+    certificates are those of rendering and bounding from every surfel (COVERS_BYTES = 0:
     nothing kept)."""
     decided = _decisions(monkeypatch)
     used = []
@@ -155,7 +155,7 @@ def test_the_anchors_path_certifies_as_when_every_pose_is_rendered(monkeypatch):
         monkeypatch.setattr(anchor_geometry, "COVERS_BYTES", 256 * 2**20)
         assert with_covers.status != "error" and _fields(with_covers) == _fields(rendered), (seed, axis)
     assert len(used) >= 2 and sum(used) > 0   # the covers did render (a second refinement happened)
-    assert sum(decided) > 0                   # and bound the refinement on tz
+    assert sum(decided) > 0                   # and bound the refinement
 
 
 @pytest.mark.parametrize("axis", ["tz", "ry", "rz"])
