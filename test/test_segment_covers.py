@@ -255,9 +255,10 @@ def test_refined_bounds_from_the_covers_hold_every_frame_inside(monkeypatch, axi
 def test_refined_bounds_from_the_covers_on_random_clouds(seed, axis, scale):
     """Property: on random clouds (holes, a near box, ulp duplicates, near-plane and behind-camera points) and motion
     ranges from a fraction of the shipped radius to 20 times it, the bounds of a refinement decided from its parent's
-    covers hold every frame the renderer draws at 6 poses inside each segment, and equal those from every surfel bit
-    for bit (proven along tz; along a rotation equal unless a sample point falls between a child's box and its
-    parent's)."""
+    covers hold every frame the renderer draws at 6 poses inside each segment (every axis: SegmentCovers.decide's
+    soundness), and along tz equal those from every surfel bit for bit (proven there; along a rotation the two may
+    differ where a sample point falls between a child's box and its parent's, both sound: the fixed clouds above and
+    the real frames below check equality there)."""
     rng, r, grid, covers = _grid_and_covers(axis, seed, scale=scale, extra=np.array([[0.0, 0.0, 0.01]]))
     if covers.dropped or covers.where is None:
         return
@@ -265,9 +266,10 @@ def test_refined_bounds_from_the_covers_on_random_clouds(seed, axis, scale):
     b = grid[-1]
     assert covers.decides(fine)
     got = hulls_within(r, -b, b)(fine, parent=covers)
-    ref = hulls_within(r, -b, b)(fine)
-    for name in ("lo", "hi", "constant"):
-        np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=f"{axis} seed {seed} {name}")
+    if axis == "tz":
+        ref = hulls_within(r, -b, b)(fine)
+        for name in ("lo", "hi", "constant"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=f"{axis} seed {seed} {name}")
     a0, a1 = fine[:-1], fine[1:]
     for t in (0.0, 1.0, *rng.uniform(0, 1, 4)):
         x = r.render_batch(np.clip(a0 + (a1 - a0) * t, a0, a1)).numpy()
