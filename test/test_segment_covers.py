@@ -240,14 +240,20 @@ def test_refined_bounds_from_the_covers_hold_every_frame_inside(monkeypatch, axi
         b = grid[-1]
         got = hulls_within(r, -b, b)(fine, parent=covers)
         a0, a1 = fine[:-1], fine[1:]
-        inside = [a0, a1, np.nextafter(a0, np.inf), np.nextafter(a1, -np.inf)] + [a0 + (a1 - a0) * t for t in rng.uniform(0, 1, 8)]
-        first = r.render_batch(a0).numpy().astype(np.float64)
-        for poses in inside:
-            x = r.render_batch(np.clip(poses, a0, a1)).numpy().astype(np.float64)
-            assert np.all(got.lo <= x) and np.all(x <= got.hi), (axis, seed)
-            same = (x == first).all(axis=3)
-            assert np.all(same[got.constant]), (axis, seed)
+        _assert_holds_frames(r, got, [np.nextafter(a0, np.inf), np.nextafter(a1, -np.inf)], rng, 8, (axis, seed))
     assert sum(calls) > 0
+
+
+def _assert_holds_frames(r, hulls, poses, rng, random: int, what):
+    """Every frame the renderer draws inside each segment of ``hulls`` (at its ends, at ``poses`` (one array of a pose
+    per segment each) and at ``random`` random points) lies within its bounds, and a pixel the bounds call constant
+    shows the segment's first frame's value bit for bit."""
+    a0, a1 = hulls.alphas[:-1], hulls.alphas[1:]
+    first = r.render_batch(a0).numpy().astype(np.float64)
+    for at in [a0, a1, *poses] + [a0 + (a1 - a0) * t for t in rng.uniform(0, 1, random)]:
+        x = r.render_batch(np.clip(at, a0, a1)).numpy().astype(np.float64)
+        assert np.all(hulls.lo <= x) and np.all(x <= hulls.hi), what
+        assert np.all((x == first).all(axis=3)[hulls.constant]), what
 
 
 @settings(max_examples=8, deadline=None)
@@ -255,8 +261,8 @@ def test_refined_bounds_from_the_covers_hold_every_frame_inside(monkeypatch, axi
 def test_refined_bounds_from_the_covers_on_random_clouds(seed, axis, scale):
     """Property: on random clouds (holes, a near box, ulp duplicates, near-plane and behind-camera points) and motion
     ranges from a fraction of the shipped radius to 20 times it, the bounds of a refinement decided from its parent's
-    covers hold every frame the renderer draws at 6 poses inside each segment (every axis: SegmentCovers.decide's
-    soundness), and along tz equal those from every surfel bit for bit (proven there; along a rotation the two may
+    covers hold every frame the renderer draws at 6 poses inside each segment, constant pixels bit for bit (every
+    axis: SegmentCovers.decide's soundness), and along tz equal those from every surfel bit for bit (proven there; along a rotation the two may
     differ where a sample point falls between a child's box and its parent's, both sound: the fixed clouds above and
     the real frames below check equality there)."""
     rng, r, grid, covers = _grid_and_covers(axis, seed, scale=scale, extra=np.array([[0.0, 0.0, 0.01]]))
@@ -270,10 +276,7 @@ def test_refined_bounds_from_the_covers_on_random_clouds(seed, axis, scale):
         ref = hulls_within(r, -b, b)(fine)
         for name in ("lo", "hi", "constant"):
             np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=f"{axis} seed {seed} {name}")
-    a0, a1 = fine[:-1], fine[1:]
-    for t in (0.0, 1.0, *rng.uniform(0, 1, 4)):
-        x = r.render_batch(np.clip(a0 + (a1 - a0) * t, a0, a1)).numpy()
-        assert np.all(got.lo <= x) and np.all(x <= got.hi), (axis, seed, t)
+    _assert_holds_frames(r, got, [], rng, 4, (axis, seed))
 
 
 def test_a_lost_candidate_changes_the_refined_bounds(monkeypatch):

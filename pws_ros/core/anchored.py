@@ -13,7 +13,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from .anchor_geometry import _FixedGeometry, _RendererGeometry, grid_cap, refine_for_target, refined_hulls  # noqa: F401 (re-exported)
+from .anchor_geometry import grid_cap, refine_for_target
 from .anchors import FIRST_ROUND_SHARE, REFINE_ROUNDS, best_placement, planned_votes, predicted_target, target_radius
 from .certify_common import CertifyConfig, _conclude
 from .cloud import Cloud
@@ -158,8 +158,8 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     radius; the grid is refined where consecutive frames differ by more than a fraction of it; anchors are
     placed so that every segment lies within the target of one (sound bounds of :func:`.imaging.segment_hulls`);
     then p_A is estimated at those anchors only (Bonferroni over them) and segment ``i`` is covered by any
-    anchor ``a`` with ``D_i(x_a) < R_a``. ``geometry``: :class:`_RendererGeometry` (refines the grid and the
-    frontier) or :class:`_FixedGeometry` (frames and bounds received, nothing refined)."""
+    anchor ``a`` with ``D_i(x_a) < R_a``. ``geometry``: :class:`.anchor_geometry._RendererGeometry` (refines the grid and the
+    frontier) or :class:`.anchor_geometry._FixedGeometry` (frames and bounds received, nothing refined)."""
     sc = SmoothedClassifier(model, config.sigma, batch_size=config.batch_size, seed=config.seed, denoiser=denoiser)
     budget_samples = int(config.num_anchors) * int(config.n)    # the estimation budget of the axis
     total_work = config.n0 + budget_samples

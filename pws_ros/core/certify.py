@@ -35,8 +35,8 @@ import numpy as np
 import torch
 
 # the anchors' path and the shared pieces; their names are importable from here as before
-from .anchored import (_certify_anchored, _FixedGeometry, _RendererGeometry, anchor_grid, grid_cap, largest_target, placement,  # noqa: F401
-                       refine_for_target, refined_hulls)
+from .anchor_geometry import _FixedGeometry, _RendererGeometry, grid_cap, refine_for_target, refined_hulls  # noqa: F401
+from .anchored import _certify_anchored, anchor_grid, largest_target, placement  # noqa: F401
 from .bounds import SegmentValues
 from .camera import CameraIntrinsics
 from .certify_common import CertifyConfig, _conclude, bounds_bytes, segment_bytes  # noqa: F401
