@@ -58,9 +58,10 @@ class SegmentCovers:
         HW = self.first.shape[1]
         B = len(sure_first) // HW
         self.first[s:s + B] = sure_first.view(B, HW)
-        before = self.r.rank[cp] < sure_first[q]   # the first surely covering surfel itself needs no test
-        self._parts.append((q[before] + s * HW, cp[before]))
-        self._count(int(before.sum()))
+        # the first surely covering surfel itself needs no test
+        before = torch.nonzero(self.r.rank.index_select(0, cp) < sure_first.index_select(0, q), as_tuple=True)[0]
+        self._parts.append((q.index_select(0, before) + s * HW, cp.index_select(0, before)))
+        self._count(len(before))
 
     def adopt(self, k: int, other: "SegmentCovers", j: int) -> None:
         """Segment ``k`` is segment ``j`` of ``other`` (the same ends): its covers, copied."""
@@ -119,13 +120,14 @@ class SegmentCovers:
         require(self.holds(a), f"alphas {a!r} outside the grid [{g[0]!r}, {g[-1]!r}]")
         HW = self.first.shape[1]
         k = np.clip(np.searchsorted(g, a, side="right") - 1, 0, len(g) - 2)
-        ranks = self.first[torch.as_tensor(k, device=self.first.device)].to(torch.long)   # (B, HW), a copy
+        ranks = self.first.index_select(0, torch.as_tensor(k, device=self.first.device)).to(torch.long)   # (B, HW), a copy
         for kk in np.unique(k).tolist():
             at = np.flatnonzero(k == kk)
             subset = torch.unique(self._candidates(kk)[1], sorted=True)
             if len(subset):
                 sel = torch.as_tensor(at, device=ranks.device)
-                ranks[sel] = r.least_covering(alphas[sel], ranks[sel].reshape(-1), subset).view(len(at), HW)
+                low = r.least_covering(alphas.index_select(0, sel), ranks.index_select(0, sel).reshape(-1), subset)
+                ranks.index_copy_(0, sel, low.view(len(at), HW))
         return ranks.view(-1)
 
     def render_batch(self, alphas) -> torch.Tensor:
@@ -179,7 +181,7 @@ class SegmentCovers:
         H, W = r.intr.height, r.intr.width
         k = self._parents(g).tolist()
         dev = self.first.device
-        first = self.first[torch.as_tensor(k, device=dev)].to(torch.long).view(-1)   # the parents' firsts, a copy
+        first = self.first.index_select(0, torch.as_tensor(k, device=dev)).to(torch.long).view(-1)   # the parents' firsts, a copy
         parts = [self._candidates(kk) for kk in k]
         where = torch.cat([w + (b - kk) * HW for b, (kk, (w, _)) in enumerate(zip(k, parts))])
         point = torch.cat([p for _, p in parts])
@@ -189,21 +191,27 @@ class SegmentCovers:
         outer, omask, inner, imask = _segment_boxes(*sweep.ranges(g, subset), H, W)        # (B, U) each
         seg = torch.div(where, HW, rounding_mode="floor")
         pix = where - seg * HW
-        su, sv = r.samples.su[pix], r.samples.sv[pix]
+        su, sv = r.samples.su.index_select(0, pix), r.samples.sv.index_select(0, pix)
         eps, ieps = EDGE_EPS, -EDGE_EPS
+        at = seg * len(subset) + loc   # the pair's (segment, surfel) in the (B, U) tensors
+
+        def pick(x):
+            return x.reshape(-1).index_select(0, at)
+
         # the tests of .surfel.covered_pairs (as .surfel_cover.first_covers widens its boxes), pair by pair: the pixel
         # range it enumerates (where the samples do not imply it, .surfel_cover.range_implied), the box and mask
-        u0, u1, v0, v1 = (x[seg, loc] for x in outer)
+        u0, u1, v0, v1 = (pick(x) for x in outer)
         col, row = pix % W, torch.div(pix, W, rounding_mode="floor")
         c0, c1, r0, r1 = pixel_range(u0, u1, v0, v1, eps, W, H)
-        possible = omask[seg, loc] & (c0 <= col) & (col < c1) & (r0 <= row) & (row < r1) \
+        possible = pick(omask) & (c0 <= col) & (col < c1) & (r0 <= row) & (row < r1) \
             & (u0 - eps <= su) & (su < u1 + eps) & (v0 - eps <= sv) & (sv < v1 + eps)
-        sure = possible & imask[seg, loc] & (inner[0][seg, loc] - ieps <= su) & (su < inner[1][seg, loc] + ieps) \
-            & (inner[2][seg, loc] - ieps <= sv) & (sv < inner[3][seg, loc] + ieps)
-        rk = r.rank[point]
-        first.scatter_reduce_(0, where[sure], rk[sure], reduce="amin", include_self=True)
-        keep = possible & (rk < first[where])
-        return first, where[keep], point[keep]
+        sure = possible & pick(imask) & (pick(inner[0]) - ieps <= su) & (su < pick(inner[1]) + ieps) \
+            & (pick(inner[2]) - ieps <= sv) & (sv < pick(inner[3]) + ieps)
+        rk = r.rank.index_select(0, point)
+        sure = torch.nonzero(sure, as_tuple=True)[0]
+        first.scatter_reduce_(0, where.index_select(0, sure), rk.index_select(0, sure), reduce="amin", include_self=True)
+        keep = torch.nonzero(possible & (rk < first.index_select(0, where)), as_tuple=True)[0]
+        return first, where.index_select(0, keep), point.index_select(0, keep)
 
 
 __all__ = ["SegmentCovers"]

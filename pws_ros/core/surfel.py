@@ -129,7 +129,8 @@ class SurfelRenderer:
     def footprints(self, alphas: torch.Tensor, subset: torch.Tensor | None = None):
         """Footprint boxes ``umin, umax, vmin, vmax``, centre depth and drawn mask, each (B, P) (``subset``:
         of those surfels only, (B, U), bit for bit the same values)."""
-        corners, points = (self.corners, self.points) if subset is None else (self.corners[:, subset], self.points[subset])
+        corners, points = (self.corners, self.points) if subset is None else (self.corners.index_select(1, subset),
+                                                                              self.points.index_select(0, subset))
         u, v, d = project(corners[None], self.intr, self.axis, alphas[:, None, None], xp=torch)  # (B, 4, P)
         zc = depth(points[None], self.axis, alphas[:, None], xp=torch)                          # (B, P)
         drawn = (d > 0).all(dim=1) & (zc > 0)
@@ -164,7 +165,8 @@ class SurfelRenderer:
         index tensor ``subset``, None: all) covering it there (:func:`covered_pairs`, the footprints at the poses)."""
         umin, umax, vmin, vmax, zc, drawn = self.footprints(alphas, subset)
         p_i, where, _ = covered_pairs(umin, umax, vmin, vmax, drawn, self.samples, 0.0)
-        return ranks.scatter_reduce_(0, where, self.rank[p_i if subset is None else subset[p_i]], reduce="amin", include_self=True)
+        return ranks.scatter_reduce_(0, where, self.rank.index_select(0, p_i if subset is None else subset.index_select(0, p_i)),
+                                     reduce="amin", include_self=True)
 
     def _sweep_for(self, alphas: torch.Tensor):
         """The footprint sweep over the renderer's motion range when it holds ``alphas`` and several poses are
@@ -338,9 +340,12 @@ def covered_pairs(umin, umax, vmin, vmax, mask, samples: SamplePoints, eps: floa
         inner = ((iu0 - ieps).view(-1), (iu1 + ieps).view(-1), (iv0 - ieps).view(-1), (iv1 + ieps).view(-1), imask.reshape(-1))
 
     def inside(su, sv, boxes, at=None):   # samples su, sv in the boxes (at: of these boxes only)
-        u0, u1, v0, v1 = (x if at is None else x[at] for x in boxes[:4])
+        u0, u1, v0, v1 = (x if at is None else x.index_select(0, at) for x in boxes[:4])
         ok = (u0 <= su) & (su < u1) & (v0 <= sv) & (sv < v1)
-        return ok.logical_and_(boxes[4] if at is None else boxes[4][at]) if len(boxes) > 4 else ok
+        return ok.logical_and_(boxes[4] if at is None else boxes[4].index_select(0, at)) if len(boxes) > 4 else ok
+
+    def modulo(f):   # f % P (one batch element: f itself)
+        return f if B == 1 else f % P
 
     points, wheres, insides = [], [], []
     # the 2x2 corner of every box, offset by offset over all boxes at once (no per-pair gathers)
@@ -348,15 +353,15 @@ def covered_pairs(umin, umax, vmin, vmax, mask, samples: SamplePoints, eps: floa
     wide, tall = nc > 1, nr > 1
     for sel, off in ((live, 0), (live & wide, 1), (live & tall, W), (live & wide & tall, W + 1)):
         pix = (base + off).clamp_(0, H * W - 1)
-        su, sv = samples.su[pix], samples.sv[pix]
+        su, sv = samples.su.index_select(0, pix), samples.sv.index_select(0, pix)
         f = torch.nonzero(inside(su, sv, (lo_u, hi_u, lo_v, hi_v, sel)), as_tuple=True)[0]
-        points.append(f % P)
-        wheres.append(batch_base[f] + off)
+        points.append(modulo(f))
+        wheres.append(batch_base.index_select(0, f).add_(off))
         if inner is not None:
-            insides.append(inside(su, sv, inner)[f])
+            insides.append(inside(su.index_select(0, f), sv.index_select(0, f), inner, f))
     more = torch.nonzero(live & ((nc > 2) | (nr > 2)), as_tuple=True)[0]
     if len(more):  # boxes over 2 pixels a side (a point near the camera plane, long sweeps): the rest of each
-        counts = nc[more] * nr[more]
+        counts = nc.index_select(0, more) * nr.index_select(0, more)
         total = int(counts.sum()) + sum(len(w) for w in wheres)
         require(total <= MAX_COVERED_PAIRS,
                 f"the surfels of this frame can cover {total} pixel-surfel pairs in one batch, more than the "
@@ -369,19 +374,20 @@ def covered_pairs(umin, umax, vmin, vmax, mask, samples: SamplePoints, eps: floa
         stops = torch.unique(torch.searchsorted(ends, marks).clamp_(max=len(more) - 1)).tolist()
         for start, stop in zip([0] + [s + 1 for s in stops[:-1]], stops):
             piece = more[start:stop + 1]
-            cnt = nc[piece] * nr[piece]
+            nc_p = nc.index_select(0, piece)
+            cnt = nc_p * nr.index_select(0, piece)
             rep = torch.repeat_interleave(torch.arange(len(piece), device=dev), cnt)
-            t = torch.arange(int(cnt.sum()), device=dev) - (torch.cumsum(cnt, 0) - cnt)[rep]
-            f, ncr = piece[rep], nc[piece][rep]
+            t = torch.arange(int(cnt.sum()), device=dev) - (torch.cumsum(cnt, 0) - cnt).index_select(0, rep)
+            f, ncr = piece.index_select(0, rep), nc_p.index_select(0, rep)
             dr, dc = torch.div(t, ncr, rounding_mode="floor"), t % ncr
-            rest = (dr > 1) | (dc > 1)
-            f, off = f[rest], dr[rest] * W + dc[rest]
-            pix = base[f] + off
-            su, sv = samples.su[pix], samples.sv[pix]
-            ok = inside(su, sv, (lo_u, hi_u, lo_v, hi_v), f)
-            f, off, su, sv = f[ok], off[ok], su[ok], sv[ok]
-            points.append(f % P)
-            wheres.append(batch_base[f] + off)
+            rest = torch.nonzero((dr > 1) | (dc > 1), as_tuple=True)[0]
+            f, off = f.index_select(0, rest), dr.index_select(0, rest) * W + dc.index_select(0, rest)
+            pix = base.index_select(0, f) + off
+            su, sv = samples.su.index_select(0, pix), samples.sv.index_select(0, pix)
+            ok = torch.nonzero(inside(su, sv, (lo_u, hi_u, lo_v, hi_v), f), as_tuple=True)[0]
+            f, off, su, sv = (x.index_select(0, ok) for x in (f, off, su, sv))
+            points.append(modulo(f))
+            wheres.append(batch_base.index_select(0, f) + off)
             if inner is not None:
                 insides.append(inside(su, sv, inner, f))
     return torch.cat(points), torch.cat(wheres), (torch.cat(insides) if inner is not None else None)
@@ -422,7 +428,7 @@ class FootprintSweep:
         g = np.asarray(g, dtype=np.float64)
         B = len(g) - 1
         t = torch.as_tensor(g, dtype=torch.float64, device=r.device)
-        corners, points = (r.corners, r.points) if subset is None else (r.corners[:, subset], r.points[subset])
+        corners, points = (r.corners, r.points) if subset is None else (r.corners.index_select(1, subset), r.points.index_select(0, subset))
         U = corners.shape[1]
         u, v, d = project(corners[None], r.intr, r.axis, t[:, None, None], xp=torch)     # (B+1, 4, U)
         zc = depth(points[None], r.axis, t[:, None], xp=torch)                           # (B+1, U)

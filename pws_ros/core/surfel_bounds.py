@@ -270,7 +270,7 @@ class _HullSweep(FootprintSweep):
         if len(cp):
             idx = q[:, None].expand(-1, 3)
             vals = r.colors.index_select(0, cp)
-            moved = q[(vals != lo.index_select(0, q)).any(1)]
+            moved = q.index_select(0, torch.nonzero((vals != lo.index_select(0, q)).any(1), as_tuple=True)[0])
             b, p = torch.div(moved, HW, rounding_mode="floor"), moved % HW
             one[(b * h + torch.div(p, W * k, rounding_mode="floor")) * w + torch.div(p % W, k, rounding_mode="floor")] = False
             lo.scatter_reduce_(0, idx, vals, reduce="amin", include_self=True)

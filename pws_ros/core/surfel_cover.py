@@ -135,14 +135,15 @@ def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: to
             return enumerated()
     # 1. the union: per pixel the first pair in occlusion order, and the first surely covering throughout
     pt, pix, ins = pairs(*(x[None] for x in U), umask[None], samples, eps, inner=(*(x[None] for x in I), imask_u[None], ieps))
-    rk = rank[pt]
+    rk = rank.index_select(0, pt)
     r_first = torch.full((HW,), P, dtype=torch.long, device=dev).scatter_reduce_(0, pix, rk, "amin", include_self=True)
-    s_first = torch.full((HW,), P, dtype=torch.long, device=dev).scatter_reduce_(0, pix[ins], rk[ins], "amin",
-                                                                                  include_self=True)
+    ins = torch.nonzero(ins, as_tuple=True)[0]
+    s_first = torch.full((HW,), P, dtype=torch.long, device=dev).scatter_reduce_(0, pix.index_select(0, ins), rk.index_select(0, ins),
+                                                                                  "amin", include_self=True)
     first = s_first.expand(B, HW).clone()
     # 2. the dynamic pixels: their union pairs up to the static first one, tested element by element
-    dyn = (r_first < s_first)[pix] & (rk <= s_first[pix])
-    pt, pix, rk = pt[dyn], pix[dyn], rk[dyn]
+    dyn = torch.nonzero((r_first < s_first).index_select(0, pix) & (rk <= s_first.index_select(0, pix)), as_tuple=True)[0]
+    pt, pix, rk = pt.index_select(0, dyn), pix.index_select(0, dyn), rk.index_select(0, dyn)
     if B > 1 and len(pt) > DYNAMIC_SHARE * P:
         # most pixels may change within the batch (a motion of a good part of a pixel): testing their pairs
         # element by element costs more than enumerating every element's pairs
@@ -158,18 +159,19 @@ def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: to
         # widened as covered_pairs widens them
         cols = [torch.where(omask, outer[0] - eps, nan), outer[1] + eps, outer[2] - eps, outer[3] + eps,
                 torch.where(imask, inner[0] - ieps, nan), inner[1] + ieps, inner[2] - ieps, inner[3] + ieps]
-        su, sv = samples.su[pix], samples.sv[pix]                             # (D,)
+        su, sv = samples.su.index_select(0, pix), samples.sv.index_select(0, pix)   # (D,)
         flat = first.view(-1)
         at = pix[None, :] + torch.arange(B, device=dev)[:, None] * HW          # (B, D)
         g = [c.index_select(1, loc) for c in cols]                             # (B, D) each
         possible = (g[0] <= su) & (su < g[1]) & (g[2] <= sv) & (sv < g[3])
         sure = possible & (g[4] <= su) & (su < g[5]) & (g[6] <= sv) & (sv < g[7])
-        rkb = rk.expand_as(sure)
-        flat.scatter_reduce_(0, at[sure], rkb[sure], "amin", include_self=True)
+        at, rkb = at.view(-1), rk.repeat(B)                                    # (B D,)
+        sure = torch.nonzero(sure.view(-1), as_tuple=True)[0]
+        flat.scatter_reduce_(0, at.index_select(0, sure), rkb.index_select(0, sure), "amin", include_self=True)
         if candidates:
-            keep = possible & (rkb <= flat[at])
-            where_out.append(at[keep])
-            point_out.append(pt.expand_as(keep)[keep])
+            keep = torch.nonzero(possible.view(-1) & (rkb <= flat.index_select(0, at)), as_tuple=True)[0]
+            where_out.append(at.index_select(0, keep))
+            point_out.append(pt.repeat(B).index_select(0, keep))
     if not candidates:
         return first
     empty = torch.zeros(0, dtype=torch.long, device=dev)
@@ -184,9 +186,11 @@ def reference_first_covers(outer, omask, inner, imask, eps: float, ieps: float, 
     HW = samples.H * samples.W
     cp, q, is_sure = pairs(*outer, omask, samples, eps, inner=(*inner, imask, ieps))
     first = torch.full((B * HW,), P, dtype=torch.long, device=rank.device)
-    first.scatter_reduce_(0, q[is_sure], rank[cp[is_sure]], reduce="amin", include_self=True)
-    keep = rank[cp] <= first[q]
-    return first.view(B, HW), q[keep], cp[keep]
+    rk = rank.index_select(0, cp)
+    sure = torch.nonzero(is_sure, as_tuple=True)[0]
+    first.scatter_reduce_(0, q.index_select(0, sure), rk.index_select(0, sure), reduce="amin", include_self=True)
+    keep = torch.nonzero(rk <= first.index_select(0, q), as_tuple=True)[0]
+    return first.view(B, HW), q.index_select(0, keep), cp.index_select(0, keep)
 
 
 __all__ = ["UnionPolicy", "first_covers", "range_implied", "reference_first_covers", "union_of", "widen"]
