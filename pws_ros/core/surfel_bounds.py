@@ -50,9 +50,12 @@ class HullValues:
         sel = slice(None) if segments is None else segments
         y = _as_numpy(y)
         # max((lo - y)^2, (hi - y)^2) = max(y - lo, hi - y)^2 (one of the two is the larger magnitude):
-        # float64 throughout, two temporaries, the squares summed as a dot product
-        m = np.subtract(y, self.lo[sel], dtype=np.float64)
-        e = np.subtract(self.hi[sel], y, dtype=np.float64)
+        # float64 throughout (the bounds cast first, then subtracted in place: cheaper than a casting ufunc, the
+        # same values), two temporaries, the squares summed as a dot product
+        m = self.lo[sel].astype(np.float64)
+        np.subtract(y, m, out=m)
+        e = self.hi[sel].astype(np.float64)
+        np.subtract(e, y, out=e)
         np.maximum(m, e, out=m)
         m = m.reshape(m.shape[0], -1)
         return np.einsum("ij,ij->i", m, m) * SAFETY
