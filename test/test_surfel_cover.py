@@ -92,6 +92,39 @@ def test_ranges_of_a_subset_are_those_of_the_whole(axis):
             assert torch.equal(x[i:i + 1, sub], y)
 
 
+@pytest.mark.parametrize("axis", ["tx", "ty", "tz"])
+def test_two_corners_give_every_footprint_of_a_translation(monkeypatch, axis):
+    """Along a translation the renderer and the sweep project two opposite corners of each surfel
+    (surfel.footprint_corners): the footprints, the segments' sweep and sure boxes and the unions are bit for bit
+    those of all four corners, at poses and segments whose range holds the pole of tz (points at depth 1 mm and
+    2 cm, split events) and points behind the camera."""
+    from pws_ros.core.surfel_bounds import _segment_boxes
+    from pws_ros.core.surfel_cover import union_of
+
+    rng = np.random.default_rng(11)
+    cloud = random_cloud(rng)
+    im = make_imaging("surfel", CAM, (12, 16), render_factor=2)
+    b = RADIUS[axis] * 3
+    g = np.linspace(-b, b, 13)
+
+    def run():
+        r = SurfelRenderer(cloud, im, axis)
+        sweep = FootprintSweep(r, -b, b)
+        H, W = r.intr.height, r.intr.width
+        boxes = _segment_boxes(*sweep.ranges(g), H, W)
+        flat = [*boxes[0], boxes[1], *boxes[2], boxes[3]]
+        union = union_of(*(x[0] for x in sweep.ranges([-b, b])))
+        return r.corners.shape[0], flat + [*union[0], union[1], *union[2], union[3]] + list(r.footprints(torch.as_tensor(g)))
+
+    two, got = run()
+    monkeypatch.setattr(surfel_mod, "footprint_corners", lambda corners, axis: corners)
+    four, want = run()
+    assert (two, four) == (2, 4)
+    assert len(FootprintSweep(SurfelRenderer(cloud, im, axis), -b, b).corner_ev[0]) > 0 or axis != "tz"
+    for x, y in zip(got, want):
+        assert x.dtype == y.dtype and torch.equal(x, y)
+
+
 def test_union_holds_every_footprint_and_sweep_box():
     rng = np.random.default_rng(5)
     cloud = random_cloud(rng)

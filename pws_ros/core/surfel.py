@@ -37,7 +37,7 @@ from .camera import CameraIntrinsics
 from .cloud import Cloud
 from .errors import require
 from .framing import SAMPLE_JITTER, SURFEL_OVERLAP, Imaging, reduce_frames
-from .motion import depth, parse_axis, project, split_events
+from .motion import TRANSLATIONS, depth, parse_axis, project, split_events
 from .render import DEFAULT_MAX_ELEMENTS, resolve_device
 from .surfel_cover import UnionPolicy, first_covers, range_implied, union_of
 
@@ -99,7 +99,7 @@ class SurfelRenderer:
         self.rank = torch.as_tensor(rank, device=self.device)
         self.by_rank = torch.as_tensor(np.append(order, len(pts)), device=self.device)  # rank -> index, P -> P
         self.points_np, self.colors_np = pts, colors
-        self.corners_np = surfel_corners(pts, self.intr)                     # (4, P, 3)
+        self.corners_np = footprint_corners(surfel_corners(pts, self.intr), self.axis)   # (C, P, 3)
         self.points = torch.as_tensor(pts, device=self.device)
         self.corners = torch.as_tensor(self.corners_np, device=self.device)
         bg = np.full((1, 3), self.background, dtype=np.float32)
@@ -131,7 +131,7 @@ class SurfelRenderer:
         of those surfels only, (B, U), bit for bit the same values)."""
         corners, points = (self.corners, self.points) if subset is None else (self.corners.index_select(1, subset),
                                                                               self.points.index_select(0, subset))
-        u, v, d = project(corners[None], self.intr, self.axis, alphas[:, None, None], xp=torch)  # (B, 4, P)
+        u, v, d = project(corners[None], self.intr, self.axis, alphas[:, None, None], xp=torch)  # (B, C, P)
         zc = depth(points[None], self.axis, alphas[:, None], xp=torch)                          # (B, P)
         drawn = (d > 0).all(dim=1) & (zc > 0)
         return u.amin(1), u.amax(1), v.amin(1), v.amax(1), zc, drawn
@@ -271,6 +271,17 @@ def _bin(points: np.ndarray, colors: np.ndarray, cam: CameraIntrinsics) -> tuple
     out = np.stack([(cc - cam.cx) * z / cam.fx, (rr - cam.cy) * z / cam.fy, z], axis=1)  # u = cc + 1/2 at alpha 0
     mean = np.add.reduceat(cols[order].astype(np.float64), start, axis=0) / count[:, None]
     return out, mean.astype(np.float32)
+
+
+def footprint_corners(corners: np.ndarray, axis: str) -> np.ndarray:
+    """The corners ``(C, P, 3)`` of :func:`surfel_corners` whose projections give every footprint along ``axis``:
+    along a translation two opposite ones (0 and 3), since ``u`` of a corner depends on its ``X`` and ``Z`` only,
+    ``v`` on its ``Y`` and ``Z``, and its depth on ``Z`` (corner 1 has the ``X`` of 3 and the ``Y`` of 0, corner 2
+    the reverse, all four the same ``Z``): the other two project onto the same values bit for bit (the same
+    float operations on the same numbers), at every pose and split event (a translation's only event, the pole
+    of tz, is at ``Z``), so every least and greatest over the four corners is that over the two. Along a
+    rotation all four."""
+    return np.ascontiguousarray(corners[[0, 3]]) if axis in TRANSLATIONS else corners
 
 
 def surfel_corners(points: np.ndarray, intr: CameraIntrinsics) -> np.ndarray:
@@ -421,18 +432,18 @@ class FootprintSweep:
                 torch.as_tensor(seg[ok], device=device))
 
     def ranges(self, g, subset: torch.Tensor | None = None):
-        """Per segment ``[g[k], g[k+1]]`` and surfel: the range of every corner's ``u`` and ``v`` (B, 4, P), the
-        least corner depth (B, 4, P), the centre depth range (B, P) each. ``subset`` (sorted surfel indices):
-        those surfels only (U in place of P), bit for bit the same values."""
+        """Per segment ``[g[k], g[k+1]]`` and surfel: the range of every footprint corner's ``u`` and ``v`` (B, C, P;
+        :func:`footprint_corners`), the least corner depth (B, C, P), the centre depth range (B, P) each. ``subset``
+        (sorted surfel indices): those surfels only (U in place of P), bit for bit the same values."""
         r, P = self.r, self.P
         g = np.asarray(g, dtype=np.float64)
         B = len(g) - 1
         t = torch.as_tensor(g, dtype=torch.float64, device=r.device)
         corners, points = (r.corners, r.points) if subset is None else (r.corners.index_select(1, subset), r.points.index_select(0, subset))
-        U = corners.shape[1]
-        u, v, d = project(corners[None], r.intr, r.axis, t[:, None, None], xp=torch)     # (B+1, 4, U)
+        C, U = corners.shape[:2]
+        u, v, d = project(corners[None], r.intr, r.axis, t[:, None, None], xp=torch)     # (B+1, C, U)
         zc = depth(points[None], r.axis, t[:, None], xp=torch)                           # (B+1, U)
-        u_lo, u_hi = torch.minimum(u[:-1], u[1:]).reshape(-1), torch.maximum(u[:-1], u[1:]).reshape(-1)   # (B 4 U)
+        u_lo, u_hi = torch.minimum(u[:-1], u[1:]).reshape(-1), torch.maximum(u[:-1], u[1:]).reshape(-1)   # (B C U)
         v_lo, v_hi = torch.minimum(v[:-1], v[1:]).reshape(-1), torch.maximum(v[:-1], v[1:]).reshape(-1)
         d_lo = torch.minimum(d[:-1], d[1:]).reshape(-1)
         z_lo, z_hi = torch.minimum(zc[:-1], zc[1:]).reshape(-1), torch.maximum(zc[:-1], zc[1:]).reshape(-1)
@@ -446,13 +457,14 @@ class FootprintSweep:
             ok = local[p] >= 0
             flat, te, seg = k[ok] * U + local[p[ok]], te[ok], seg[ok]
         if len(flat):
-            uu, vv, dd = project(corners.reshape(-1, 3)[flat], r.intr, r.axis, te, xp=torch)
-            at = seg * (4 * U) + flat
-            u_lo = u_lo.scatter_reduce(0, at, uu, "amin")
-            u_hi = u_hi.scatter_reduce(0, at, uu, "amax")
-            v_lo = v_lo.scatter_reduce(0, at, vv, "amin")
-            v_hi = v_hi.scatter_reduce(0, at, vv, "amax")
-            d_lo = d_lo.scatter_reduce(0, at, dd, "amin")
+            uu, vv, dd = project(corners.reshape(-1, 3).index_select(0, flat), r.intr, r.axis, te, xp=torch)
+            at = seg * (C * U) + flat
+            # in place: each range is a new tensor of its own (no copy of the whole range per event scatter)
+            u_lo.scatter_reduce_(0, at, uu, "amin")
+            u_hi.scatter_reduce_(0, at, uu, "amax")
+            v_lo.scatter_reduce_(0, at, vv, "amin")
+            v_hi.scatter_reduce_(0, at, vv, "amax")
+            d_lo.scatter_reduce_(0, at, dd, "amin")
         p, te, seg = self._inside(self.centre_ev, g, r.device)
         if local is not None and len(p):
             ok = local[p] >= 0
@@ -460,9 +472,9 @@ class FootprintSweep:
         if len(p):
             zz = depth(points[p], r.axis, te, xp=torch)
             at = seg * U + p
-            z_lo = z_lo.scatter_reduce(0, at, zz, "amin")
-            z_hi = z_hi.scatter_reduce(0, at, zz, "amax")
-        shape = (B, 4, U)
+            z_lo.scatter_reduce_(0, at, zz, "amin")
+            z_hi.scatter_reduce_(0, at, zz, "amax")
+        shape = (B, C, U)
         return (u_lo.view(shape), u_hi.view(shape), v_lo.view(shape), v_hi.view(shape), d_lo.view(shape),
                 z_lo.view(B, U), z_hi.view(B, U))
 
@@ -479,5 +491,5 @@ class FootprintSweep:
         return ((z_hi > 0) & (inside | wild)).cpu().numpy()
 
 
-__all__ = ["FootprintSweep", "SamplePoints", "SurfelRenderer", "bin_cloud", "covered_pairs", "occlusion_key",
+__all__ = ["FootprintSweep", "SamplePoints", "SurfelRenderer", "bin_cloud", "covered_pairs", "footprint_corners", "occlusion_key",
            "pixel_range", "surfel_corners"]

@@ -81,7 +81,7 @@ class UnionPolicy:
 
 def union_of(u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi):
     """From the footprint ranges of each surfel over a range of motion ``[a, b]`` (one segment of
-    :meth:`.surfel.FootprintSweep.ranges`: (4, P) and (P,)), the ``union`` of :func:`first_covers`: a box
+    :meth:`.surfel.FootprintSweep.ranges`: (C, P) and (P,)), the ``union`` of :func:`first_covers`: a box
     holding its footprint at every pose of ``[a, b]`` (``[-inf, inf]`` where a corner may cross depth 0),
     whether it may be drawn there, a box inside its footprint at every pose, and whether it is surely drawn
     throughout; with room for float rounding (:func:`widen`), so that the footprints and sweep boxes
