@@ -92,12 +92,14 @@ def test_ranges_of_a_subset_are_those_of_the_whole(axis):
             assert torch.equal(x[i:i + 1, sub], y)
 
 
-@pytest.mark.parametrize("axis", ["tx", "ty", "tz"])
-def test_two_corners_give_every_footprint_of_a_translation(monkeypatch, axis):
+@pytest.mark.parametrize("axis", ["tx", "ty", "tz", "ry"])
+def test_shared_corners_give_every_footprint(monkeypatch, axis):
     """Along a translation the renderer and the sweep project two opposite corners of each surfel
-    (surfel.footprint_corners): the footprints, the segments' sweep and sure boxes and the unions are bit for bit
-    those of all four corners, at poses and segments whose range holds the pole of tz (points at depth 1 mm and
-    2 cm, split events) and points behind the camera."""
+    (surfel.footprint_corners), along ry the u and depth of two columns (surfel.project_corners): the footprints,
+    the segments' sweep and sure boxes and the unions are bit for bit those of all four corners projected each on
+    its own (motion.project), over ranges that hold split events (the pole of tz: points at depth 1 mm and 2 cm;
+    ry's stationary depths near the centre column) and points behind the camera."""
+    from pws_ros.core.motion import project
     from pws_ros.core.surfel_bounds import _segment_boxes
     from pws_ros.core.surfel_cover import union_of
 
@@ -118,9 +120,10 @@ def test_two_corners_give_every_footprint_of_a_translation(monkeypatch, axis):
 
     two, got = run()
     monkeypatch.setattr(surfel_mod, "footprint_corners", lambda corners, axis: corners)
+    monkeypatch.setattr(surfel_mod, "project_corners", lambda c, intr, axis, a: project(c, intr, axis, a, xp=torch))
     four, want = run()
-    assert (two, four) == (2, 4)
-    assert len(FootprintSweep(SurfelRenderer(cloud, im, axis), -b, b).corner_ev[0]) > 0 or axis != "tz"
+    assert (two, four) == (4 if axis == "ry" else 2, 4)
+    assert len(FootprintSweep(SurfelRenderer(cloud, im, axis), -b, b).corner_ev[0]) > 0 or axis in ("tx", "ty")
     for x, y in zip(got, want):
         assert x.dtype == y.dtype and torch.equal(x, y)
 

@@ -120,7 +120,8 @@ class SurfelRenderer:
         """The rows of :attr:`shades` of ranks (B H W,) of native pixels (``P``: that pixel's uncovered value)."""
         HW = self.intr.height * self.intr.width
         P = self.num_points
-        return torch.where(ranks == P, torch.arange(HW, device=ranks.device).repeat(len(ranks) // HW) + P, ranks)
+        rows = ranks.view(-1, HW)
+        return torch.where(rows == P, torch.arange(P, P + HW, device=ranks.device), rows).view(-1)
 
     @property
     def chunk_size(self) -> int:
@@ -131,7 +132,7 @@ class SurfelRenderer:
         of those surfels only, (B, U), bit for bit the same values)."""
         corners, points = (self.corners, self.points) if subset is None else (self.corners.index_select(1, subset),
                                                                               self.points.index_select(0, subset))
-        u, v, d = project(corners[None], self.intr, self.axis, alphas[:, None, None], xp=torch)  # (B, C, P)
+        u, v, d = project_corners(corners[None], self.intr, self.axis, alphas[:, None, None])   # (B, C', P)
         zc = depth(points[None], self.axis, alphas[:, None], xp=torch)                          # (B, P)
         drawn = (d > 0).all(dim=1) & (zc > 0)
         return u.amin(1), u.amax(1), v.amin(1), v.amax(1), zc, drawn
@@ -284,6 +285,32 @@ def footprint_corners(corners: np.ndarray, axis: str) -> np.ndarray:
     return np.ascontiguousarray(corners[[0, 3]]) if axis in TRANSLATIONS else corners
 
 
+def project_corners(corners: torch.Tensor, intr: CameraIntrinsics, axis: str, alpha: torch.Tensor):
+    """``u, v, depth`` of the footprint corners ``corners`` (..., C, P, 3) at ``alpha`` (broadcast as
+    :func:`.motion.project`), each (..., C', P): :func:`.motion.project` of every corner, except along ry with four
+    corners, where a corner's ``u`` and depth depend on its ``X`` and ``Z`` only (the rotation leaves ``Y`` alone):
+    those of the two columns (corners 0 and 1: ``X -+ hx``) are computed once, ``u`` and depth (..., 2, P) (corners 2
+    and 3 share them bit for bit: :meth:`FootprintSweep.ranges` folds their split events in by
+    :data:`RY_COLUMN`), and ``v`` (..., 4, P) from the rows' ``Y`` and the columns' ``1 / Z'``: the very operations
+    of :func:`.motion.project` on the same numbers."""
+    if axis != "ry" or corners.shape[-3] != 4:
+        return project(corners, intr, axis, alpha, xp=torch)
+    cols = corners[..., 0:2, :, :]                          # corners 0 and 1: X - hx, X + hx (Z shared)
+    X, Z = cols[..., 0], cols[..., 2]
+    c, s = torch.cos(alpha), torch.sin(alpha)
+    Xp, Zp = torch.mul(X, c).addcmul_(Z, s, value=-1.0), torch.mul(X, s).addcmul_(Z, c)   # as motion._project_torch
+    inv = torch.reciprocal(Zp).clamp_(-1e300, 1e300)
+    u = torch.addcmul(torch.tensor(intr.cx + 0.5, dtype=inv.dtype, device=inv.device), Xp, inv, value=intr.fx)
+    Y = corners[..., 0::2, :, 1]                            # corners 0 and 2: the rows' Y - hy, Y + hy
+    v = torch.addcmul(torch.tensor(intr.cy + 0.5, dtype=inv.dtype, device=inv.device), Y.unsqueeze(-2), inv.unsqueeze(-3),
+                      value=intr.fy)                        # (..., row, column, P): corner 2 row + column
+    return u, v.flatten(-3, -2), Zp
+
+
+# along ry, the column (u and depth slot) of each of the four corners (corner k = 2 row + column)
+RY_COLUMN = (0, 1, 0, 1)
+
+
 def surfel_corners(points: np.ndarray, intr: CameraIntrinsics) -> np.ndarray:
     """The four corners ``(4, P, 3)`` of every surfel (see the module doc); a point at depth <= 0 has a
     surfel of size 0."""
@@ -433,15 +460,17 @@ class FootprintSweep:
 
     def ranges(self, g, subset: torch.Tensor | None = None):
         """Per segment ``[g[k], g[k+1]]`` and surfel: the range of every footprint corner's ``u`` and ``v`` (B, C, P;
-        :func:`footprint_corners`), the least corner depth (B, C, P), the centre depth range (B, P) each. ``subset``
-        (sorted surfel indices): those surfels only (U in place of P), bit for bit the same values."""
+        :func:`footprint_corners`), the least corner depth (B, C, P), the centre depth range (B, P) each (along ry ``u``
+        and depth per column, (B, 2, P): :func:`project_corners`). ``subset`` (sorted surfel indices): those surfels
+        only (U in place of P), bit for bit the same values."""
         r, P = self.r, self.P
         g = np.asarray(g, dtype=np.float64)
         B = len(g) - 1
         t = torch.as_tensor(g, dtype=torch.float64, device=r.device)
         corners, points = (r.corners, r.points) if subset is None else (r.corners.index_select(1, subset), r.points.index_select(0, subset))
         C, U = corners.shape[:2]
-        u, v, d = project(corners[None], r.intr, r.axis, t[:, None, None], xp=torch)     # (B+1, C, U)
+        u, v, d = project_corners(corners[None], r.intr, r.axis, t[:, None, None])        # (B+1, C', U)
+        Cu = u.shape[1]   # C, or the columns along ry (project_corners)
         zc = depth(points[None], r.axis, t[:, None], xp=torch)                           # (B+1, U)
         u_lo, u_hi = torch.minimum(u[:-1], u[1:]).reshape(-1), torch.maximum(u[:-1], u[1:]).reshape(-1)   # (B C U)
         v_lo, v_hi = torch.minimum(v[:-1], v[1:]).reshape(-1), torch.maximum(v[:-1], v[1:]).reshape(-1)
@@ -459,12 +488,16 @@ class FootprintSweep:
         if len(flat):
             uu, vv, dd = project(corners.reshape(-1, 3).index_select(0, flat), r.intr, r.axis, te, xp=torch)
             at = seg * (C * U) + flat
+            au = at
+            if Cu != C:   # ry: u and depth per column (project_corners), v per corner
+                k, p = torch.div(flat, U, rounding_mode="floor"), flat % U
+                au = seg * (Cu * U) + torch.as_tensor(RY_COLUMN, device=r.device).index_select(0, k) * U + p
             # in place: each range is a new tensor of its own (no copy of the whole range per event scatter)
-            u_lo.scatter_reduce_(0, at, uu, "amin")
-            u_hi.scatter_reduce_(0, at, uu, "amax")
+            u_lo.scatter_reduce_(0, au, uu, "amin")
+            u_hi.scatter_reduce_(0, au, uu, "amax")
             v_lo.scatter_reduce_(0, at, vv, "amin")
             v_hi.scatter_reduce_(0, at, vv, "amax")
-            d_lo.scatter_reduce_(0, at, dd, "amin")
+            d_lo.scatter_reduce_(0, au, dd, "amin")
         p, te, seg = self._inside(self.centre_ev, g, r.device)
         if local is not None and len(p):
             ok = local[p] >= 0
@@ -474,8 +507,8 @@ class FootprintSweep:
             at = seg * U + p
             z_lo.scatter_reduce_(0, at, zz, "amin")
             z_hi.scatter_reduce_(0, at, zz, "amax")
-        shape = (B, C, U)
-        return (u_lo.view(shape), u_hi.view(shape), v_lo.view(shape), v_hi.view(shape), d_lo.view(shape),
+        shape, sh_u = (B, C, U), (B, Cu, U)
+        return (u_lo.view(sh_u), u_hi.view(sh_u), v_lo.view(shape), v_hi.view(shape), d_lo.view(sh_u),
                 z_lo.view(B, U), z_hi.view(B, U))
 
     def union(self, a: float, b: float):
@@ -491,5 +524,5 @@ class FootprintSweep:
         return ((z_hi > 0) & (inside | wild)).cpu().numpy()
 
 
-__all__ = ["FootprintSweep", "SamplePoints", "SurfelRenderer", "bin_cloud", "covered_pairs", "footprint_corners", "occlusion_key",
-           "pixel_range", "surfel_corners"]
+__all__ = ["FootprintSweep", "RY_COLUMN", "SamplePoints", "SurfelRenderer", "bin_cloud", "covered_pairs", "footprint_corners",
+           "occlusion_key", "pixel_range", "project_corners", "surfel_corners"]

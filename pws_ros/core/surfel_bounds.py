@@ -271,11 +271,15 @@ class _HullSweep(FootprintSweep):
         # from the pixel's first value): bitwise constant over the segment
         one = torch.ones(B * h * w, dtype=torch.bool, device=r.device)
         if len(cp):
-            idx = q[:, None].expand(-1, 3)
             vals = r.colors.index_select(0, cp)
-            moved = q.index_select(0, torch.nonzero((vals != lo.index_select(0, q)).any(1), as_tuple=True)[0])
+            # the candidates whose colour differs from the pixel's first value: only they move lo and hi (a colour
+            # equal to it in every channel leaves both as they are, up to the sign of a zero, which no block mean
+            # widened by VALUE_EPS below keeps)
+            differ = torch.nonzero((vals != lo.index_select(0, q)).any(1), as_tuple=True)[0]
+            moved, vals = q.index_select(0, differ), vals.index_select(0, differ)
             b, p = torch.div(moved, HW, rounding_mode="floor"), moved % HW
             one[(b * h + torch.div(p, W * k, rounding_mode="floor")) * w + torch.div(p % W, k, rounding_mode="floor")] = False
+            idx = moved[:, None].expand(-1, 3)
             lo.scatter_reduce_(0, idx, vals, reduce="amin", include_self=True)
             hi.scatter_reduce_(0, idx, vals, reduce="amax", include_self=True)
         one = one.view(B, h, w)
