@@ -201,3 +201,21 @@ def test_a_repeated_call_is_computed_once_and_returns_its_own_copy():
     b = d.row(2, 0, 8)
     assert np.array_equal(b, want) and d.exact_calls == 1
     assert np.array_equal(d.row(2, 0, 4), hv.dist_sq(f[2], slice(0, 4))) and d.exact_calls == 2
+
+
+def test_distances_in_blocks_are_those_of_the_whole_call(monkeypatch):
+    """HullValues.dist_sq takes its segments a few at a time (temporaries in the cache), never one alone when a
+    call has more: every call gives bit for bit what one block of all its segments gives (blocks of two, the
+    smallest, against a block larger than any call), and within the float64 loops' rounding of _brute."""
+    import pws_ros.core.surfel_bounds as sb
+
+    f, hv = _case(6, S=11, h=50, w=60)   # 9000 values a segment: a row alone is summed in another order there
+    calls = [(j, a, b) for j in (0, 6, 11) for a in range(11) for b in range(a + 1, 12)]
+    monkeypatch.setattr(sb, "DIST_CHUNK_VALUES", 10**9)
+    whole = {c: hv.dist_sq(f[c[0]], slice(c[1], c[2])) for c in calls}
+    monkeypatch.setattr(sb, "DIST_CHUNK_VALUES", 1)
+    for c in calls:
+        np.testing.assert_array_equal(hv.dist_sq(f[c[0]], slice(c[1], c[2])), whole[c])
+    ref = _brute(f, hv)
+    for j, a, b in calls:
+        np.testing.assert_allclose(whole[(j, a, b)], ref[j, a:b] * sb.SAFETY, rtol=1e-12)

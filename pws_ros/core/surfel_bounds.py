@@ -49,16 +49,28 @@ class HullValues:
         """``D_i(y)^2 = sum max((lo - y)^2, (hi - y)^2)``: ``|x(alpha) - y|^2 <= D_i(y)^2`` on segment ``i``."""
         sel = slice(None) if segments is None else segments
         y = _as_numpy(y)
-        # max((lo - y)^2, (hi - y)^2) = max(y - lo, hi - y)^2 (one of the two is the larger magnitude):
-        # float64 throughout (the bounds cast first, then subtracted in place: cheaper than a casting ufunc, the
-        # same values), two temporaries, the squares summed as a dot product
-        m = self.lo[sel].astype(np.float64)
-        np.subtract(y, m, out=m)
-        e = self.hi[sel].astype(np.float64)
-        np.subtract(e, y, out=e)
-        np.maximum(m, e, out=m)
-        m = m.reshape(m.shape[0], -1)
-        return np.einsum("ij,ij->i", m, m) * SAFETY
+        lo, hi = self.lo[sel], self.hi[sel]
+        S = len(lo)
+        out = np.empty(S)
+        # max((lo - y)^2, (hi - y)^2) = max(y - lo, hi - y)^2 (one of the two is the larger magnitude): float64
+        # throughout (the bounds cast first, then subtracted in place: cheaper than a casting ufunc, the same values),
+        # the squares of each segment summed as one dot product. Taken a few segments at a time, so that the two
+        # temporaries stay in the cache; never one segment alone when the call has more (numpy's einsum sums a single
+        # row in another order than each row of a block of several, and every block of two or more alike: the same
+        # values as the whole call's one block, bit for bit)
+        step = max(2, DIST_CHUNK_VALUES // max(1, lo[0].size)) if S > 1 else 1
+        starts = list(range(0, S, step))
+        if len(starts) > 1 and S - starts[-1] == 1:
+            starts.pop()   # the last block takes the row that would be alone
+        for s, e in zip(starts, starts[1:] + [S]):
+            m = lo[s:e].astype(np.float64)
+            np.subtract(y, m, out=m)
+            d = hi[s:e].astype(np.float64)
+            np.subtract(d, y, out=d)
+            np.maximum(m, d, out=m)
+            m = m.reshape(e - s, -1)
+            out[s:e] = np.einsum("ij,ij->i", m, m)
+        return out * SAFETY
 
     def pair_bound_sq(self, frames, k0: int = 0) -> np.ndarray:
         """``|x(alpha) - x_i|^2 + |x(alpha) - x_{i+1}|^2`` bounds for segments ``k0 .. k0 + len(frames) - 2``."""
@@ -206,6 +218,7 @@ def hulls_within(renderer: SurfelRenderer, lo: float, hi: float, *, max_bytes: i
     return hulls
 
 
+DIST_CHUNK_VALUES = 2**17       # float64 values per temporary of HullValues.dist_sq (1 MiB: in the cache)
 HULL_BATCH_ELEMENTS = 300_000   # surfel-segments bounded per batch of segments (about 0.5 KB each at the peak: ~160 MB)
 
 
