@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 import torch
 
 import pws_ros.core.surfel as surfel_mod
@@ -145,3 +147,16 @@ def test_union_holds_every_footprint_and_sweep_box():
         inside = ~imask | (drawn & (umin <= I[0]) & (I[1] <= umax) & (vmin <= I[2]) & (I[3] <= vmax))
         assert bool(inside.all())
 
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 400), st.lists(st.integers(0, 10**6), max_size=300))
+def test_unique_indices_are_numpy_unique(n, raw):
+    """surfel_cover.unique_indices marks instead of sorting: the sorted distinct indices and the inverse that
+    numpy.unique gives (empty input, repeats, the ends 0 and n - 1 included)."""
+    x = np.array([v % n for v in raw] + ([0, n - 1] if raw else []), dtype=np.int64)
+    want, inv = np.unique(x, return_inverse=True)
+    got, got_inv = cover.unique_indices(torch.as_tensor(x), n)
+    np.testing.assert_array_equal(got.numpy(), want)
+    np.testing.assert_array_equal(got_inv.numpy(), inv.reshape(-1))
+    np.testing.assert_array_equal(cover.unique_indices(torch.as_tensor(x), n, inverse=False).numpy(), want)

@@ -13,6 +13,7 @@ from .errors import require
 from .framing import EDGE_EPS
 from .surfel import SurfelRenderer, pixel_range
 from .surfel_bounds import _segment_boxes
+from .surfel_cover import unique_indices
 
 if TYPE_CHECKING:
     from .surfel_bounds import _HullSweep
@@ -123,7 +124,7 @@ class SegmentCovers:
         ranks = self.first.index_select(0, torch.as_tensor(k, device=self.first.device)).to(torch.long)   # (B, HW), a copy
         for kk in np.unique(k).tolist():
             at = np.flatnonzero(k == kk)
-            subset = torch.unique(self._candidates(kk)[1], sorted=True)
+            subset = unique_indices(self._candidates(kk)[1], r.num_points, inverse=False)
             if len(subset):
                 sel = torch.as_tensor(at, device=ranks.device)
                 low = r.least_covering(alphas.index_select(0, sel), ranks.index_select(0, sel).reshape(-1), subset)
@@ -187,7 +188,7 @@ class SegmentCovers:
         point = torch.cat([p for _, p in parts])
         if not len(point):
             return first, where, point
-        subset, loc = torch.unique(point, sorted=True, return_inverse=True)
+        subset, loc = unique_indices(point, r.num_points)
         outer, omask, inner, imask = _segment_boxes(*sweep.ranges(g, subset), H, W)        # (B, U) each
         seg = torch.div(where, HW, rounding_mode="floor")
         pix = where - seg * HW

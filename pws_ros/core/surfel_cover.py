@@ -62,6 +62,16 @@ def range_implied(samples) -> bool:
     return samples._range_implied
 
 
+def unique_indices(x: torch.Tensor, n: int, inverse: bool = True):
+    """``torch.unique(x, sorted=True, return_inverse=inverse)`` of indices ``x`` in ``[0, n)`` (long), by marking them
+    in a table of ``n`` instead of sorting ``x`` (the same tensors; linear in ``n + len(x)``)."""
+    mark = torch.zeros(n, dtype=torch.bool, device=x.device).index_fill_(0, x, True)
+    subset = torch.nonzero(mark, as_tuple=True)[0]
+    if not inverse:
+        return subset
+    return subset, torch.cumsum(mark, 0).sub_(1).index_select(0, x)
+
+
 def widen(x: torch.Tensor, sign: float) -> torch.Tensor:
     """``x`` moved by ``UNION_SLACK`` outwards (``sign`` -1: down, +1: up; NaN: to that infinity)."""
     y = torch.add(x, x.abs().mul_(UNION_SLACK).add_(UNION_SLACK), alpha=sign)   # x + sign (SLACK + SLACK |x|)
@@ -152,7 +162,7 @@ def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: to
         return enumerated()
     where_out, point_out = [], []
     if len(pt):
-        subset, loc = torch.unique(pt, sorted=True, return_inverse=True)
+        subset, loc = unique_indices(pt, P)
         outer, omask, inner, imask = element_boxes(subset)
         nan = torch.tensor(float("nan"), dtype=outer[0].dtype, device=dev)
         # one row per surfel and element (a mask folded in as NaN: no sample is inside a NaN box), gathered per pair
@@ -193,4 +203,4 @@ def reference_first_covers(outer, omask, inner, imask, eps: float, ieps: float, 
     return first.view(B, HW), q.index_select(0, keep), cp.index_select(0, keep)
 
 
-__all__ = ["UnionPolicy", "first_covers", "range_implied", "reference_first_covers", "union_of", "widen"]
+__all__ = ["UnionPolicy", "first_covers", "range_implied", "reference_first_covers", "union_of", "unique_indices", "widen"]
