@@ -119,17 +119,21 @@ class SegmentCovers:
         r, g = self.r, self.grid
         a = alphas.cpu().numpy()
         require(self.holds(a), f"alphas {a!r} outside the grid [{g[0]!r}, {g[-1]!r}]")
-        HW = self.first.shape[1]
         k = np.clip(np.searchsorted(g, a, side="right") - 1, 0, len(g) - 2)
-        ranks = self.first.index_select(0, torch.as_tensor(k, device=self.first.device)).to(torch.long)   # (B, HW), a copy
+        dev = self.first.device
+        ranks = self.first.index_select(0, torch.as_tensor(k, device=dev)).to(torch.long).view(-1)   # (B HW,), a copy
+        # every pose with the surfels of its segment's candidates, as one flat batch of pose-surfel footprints
+        poses, surfels = [], []
         for kk in np.unique(k).tolist():
-            at = np.flatnonzero(k == kk)
             subset = unique_indices(self._candidates(kk)[1], r.num_points, inverse=False)
             if len(subset):
-                sel = torch.as_tensor(at, device=ranks.device)
-                low = r.least_covering(alphas.index_select(0, sel), ranks.index_select(0, sel).reshape(-1), subset)
-                ranks.index_copy_(0, sel, low.view(len(at), HW))
-        return ranks.view(-1)
+                for i in np.flatnonzero(k == kk).tolist():
+                    poses.append(torch.full((len(subset),), i, dtype=torch.long, device=dev))
+                    surfels.append(subset)
+        if poses:
+            pose = torch.cat(poses)
+            r.least_covering_at(alphas.index_select(0, pose), torch.cat(surfels), pose, ranks)
+        return ranks
 
     def render_batch(self, alphas) -> torch.Tensor:
         """The renderer's ``render_batch(alphas)`` for poses inside the grid, decided from the covers."""

@@ -169,6 +169,22 @@ class SurfelRenderer:
         return ranks.scatter_reduce_(0, where, self.rank.index_select(0, p_i if subset is None else subset.index_select(0, p_i)),
                                      reduce="amin", include_self=True)
 
+    def least_covering_at(self, alphas: torch.Tensor, surfels: torch.Tensor, poses: torch.Tensor, ranks: torch.Tensor) -> torch.Tensor:
+        """``ranks`` (B H W,) lowered in place: at pose ``poses[i]`` (motion ``alphas[i]``) to the rank of surfel
+        ``surfels[i]`` wherever it covers a native pixel (:meth:`least_covering` for any pose-surfel pairs, in one
+        flat batch: the footprints of :meth:`footprints` computed element by element, the same operations on the
+        same numbers)."""
+        HW = self.intr.height * self.intr.width
+        corners, points = self.corners.index_select(1, surfels), self.points.index_select(0, surfels)
+        u, v, d = project_corners(corners, self.intr, self.axis, alphas)                  # (C', N)
+        zc = depth(points, self.axis, alphas, xp=torch)                                   # (N,)
+        drawn = (d > 0).all(dim=0) & (zc > 0)
+        p_i, where, _ = covered_pairs(u.amin(0)[None], u.amax(0)[None], v.amin(0)[None], v.amax(0)[None], drawn[None],
+                                      self.samples, 0.0)
+        where = where + poses.index_select(0, p_i) * HW
+        return ranks.scatter_reduce_(0, where, self.rank.index_select(0, surfels.index_select(0, p_i)), reduce="amin",
+                                     include_self=True)
+
     def _sweep_for(self, alphas: torch.Tensor):
         """The footprint sweep over the renderer's motion range when it holds ``alphas`` and several poses are
         rendered at once (:func:`.surfel_cover.first_covers`), else None (each pose on its own)."""
