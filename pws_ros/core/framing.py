@@ -314,10 +314,19 @@ def block_mean64(x: torch.Tensor, im: Imaging, offset: float = 0.0, at: torch.Te
     values (the same sums in the same order)."""
     k = im.factor
     h, w = im.out_shape
-    if at is not None:
+    if at is not None:   # each block's k x k native pixels gathered by index, summed in _block_sums' order
         b, r, c = at.nonzero(as_tuple=True)
-        out = _block_sums(x.view(x.shape[0], h, k, w, k, 3)[b, r, :, c][:, None, :, None], k)   # (N, 1, k, 1, k, 3)
-        return (out.add_(offset) if offset else out).view(len(b), 3)
+        Wn = w * k
+        base = (b * (h * k) + r * k) * Wn + c * k                      # the block's first native pixel
+        flat = x.reshape(-1, 3)
+        out = flat.index_select(0, base).to(torch.float64, copy=True)
+        for i in range(k):
+            for j in range(k):
+                if i or j:
+                    out.add_(flat.index_select(0, base + (i * Wn + j)))
+        if k > 1:
+            out /= float(k * k)
+        return out.add_(offset) if offset else out
     out = _block_sums(x.view(x.shape[0], h, k, w, k, 3), k)
     bx, by = im.border
     if bx:
