@@ -27,7 +27,7 @@ from .errors import require
 from .framing import EDGE_EPS, SAFETY, VALUE_EPS, Imaging, block_mean64
 from .partition import validate_grid
 from .surfel import FootprintSweep, SurfelRenderer, covered_pairs
-from .surfel_cover import UnionPolicy, first_covers
+from .surfel_cover import MOTION_LIMIT, UnionPolicy, first_covers
 
 
 @dataclass
@@ -277,7 +277,7 @@ class _HullSweep(FootprintSweep):
         sure_first, q, cp = first_covers(lambda: self.union(float(g[0]), float(g[-1])), lambda sub: _segment_boxes(*self.ranges(g, sub), H, W),
                                          B, EDGE_EPS, -EDGE_EPS, r.rank, r.samples, covered_pairs, candidates=True, policy=self.policy)
         if self.policy.moved is not None:   # the union refused for the motion: later batches span a share of it
-            self.span = min(self.span, 0.9 * (float(g[-1]) - float(g[0])) / self.policy.moved)
+            self.span = min(self.span, 0.9 * (float(g[-1]) - float(g[0])) * MOTION_LIMIT / self.policy.moved)
             self.policy.moved = None
         return sure_first.view(-1), q, cp
 
