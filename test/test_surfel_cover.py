@@ -160,29 +160,3 @@ def test_unique_indices_are_numpy_unique(n, raw):
     np.testing.assert_array_equal(got.numpy(), want)
     np.testing.assert_array_equal(got_inv.numpy(), inv.reshape(-1))
     np.testing.assert_array_equal(cover.unique_indices(torch.as_tensor(x), n, inverse=False).numpy(), want)
-
-
-@pytest.mark.parametrize("axis", ["tz", "ry"])
-def test_batches_sized_by_motion_bound_as_one_segment_at_a_time(monkeypatch, axis):
-    """A sweep whose union the footprints' motion refused sizes its later batches to a share of that span
-    (surfel_bounds._HullSweep.batch_of): the batches shrink, and every segment's bounds are those of bounding each
-    segment alone, bit for bit (a segment's bounds depend on its two ends only)."""
-    import pws_ros.core.surfel_bounds as sb
-
-    rng = np.random.default_rng(4)
-    cloud = random_cloud(rng)
-    b = RADIUS[axis]
-    im = make_imaging("surfel", CAM, (12, 16), render_factor=2, uncovered="frame")
-    grid = np.union1d(np.linspace(-b, b, 41), [0.0])
-    sizes = []
-    segments = sb._HullSweep.segments
-    monkeypatch.setattr(sb._HullSweep, "segments", lambda self, g, *a: sizes.append(len(g) - 1) or segments(self, g, *a))
-    monkeypatch.setattr(cover, "MOTION_LIMIT", 0.05)   # refused at once: the span is learnt from the first batch
-    r = SurfelRenderer(cloud, im, axis)
-    monkeypatch.setattr(sb, "HULL_BATCH_ELEMENTS", 10 * r.num_points)
-    adaptive = hulls_within(r, -b, b)(grid)
-    assert sizes[0] == 10 and max(sizes[1:]) < 10 and sum(sizes) == 40, sizes
-    monkeypatch.setattr(sb._HullSweep, "batch_of", lambda self, g, s, union=True: 1)
-    alone = hulls_within(r, -b, b)(grid)
-    for x, y in ((adaptive.lo, alone.lo), (adaptive.hi, alone.hi), (adaptive.constant, alone.constant)):
-        np.testing.assert_array_equal(x, y)

@@ -208,11 +208,9 @@ def hulls_within(renderer: SurfelRenderer, lo: float, hi: float, *, max_bytes: i
         l_ = np.empty((S, h, w, 3), np.float32)
         h_ = np.empty((S, h, w, 3), np.float32)
         constant = np.empty((S, h, w), bool)
-        s = 0
-        while s < S:
-            e = min(S, s + sweep.batch_of(g, s, parent is None))
+        for s in range(0, S, sweep.batch):
+            e = min(S, s + sweep.batch)
             l_[s:e], h_[s:e], constant[s:e] = sweep.segments(g[s:e + 1], None if covers is None else (covers, (at or 0) + s), parent)
-            s = e
         if covers is not None and at is None:
             covers.close()
         return HullValues(g, l_, h_, constant, {"surfels": renderer.num_points, "segments": S})
@@ -221,7 +219,7 @@ def hulls_within(renderer: SurfelRenderer, lo: float, hi: float, *, max_bytes: i
 
 
 DIST_CHUNK_VALUES = 2**17       # float64 values per temporary of HullValues.dist_sq (1 MiB: in the cache)
-HULL_BATCH_ELEMENTS = 300_000   # most surfel-segments bounded per batch of segments (about 0.5 KB each at the peak: ~160 MB)
+HULL_BATCH_ELEMENTS = 300_000   # surfel-segments bounded per batch of segments (about 0.5 KB each at the peak: ~160 MB)
 
 
 class _HullSweep(FootprintSweep):
@@ -231,23 +229,11 @@ class _HullSweep(FootprintSweep):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.policy = UnionPolicy()   # whether a batch tries the union first (.surfel_cover), per sweep
-        self.span = float("inf")      # the motion a batch may span for its union to be taken (batch_of)
 
     @property
     def batch(self) -> int:
-        """The most segments per batch."""
+        """Segments per batch."""
         return max(1, HULL_BATCH_ELEMENTS // max(1, self.P))
-
-    def batch_of(self, g: np.ndarray, s: int, union: bool = True) -> int:
-        """Segments of the grid ``g`` in the batch starting at segment ``s``: at most :attr:`batch`, and where the batch
-        is bounded from every surfel (``union``: not from a coarser grid's covers) no more than the motion :attr:`span`
-        holds (learnt from a batch whose union the footprints' motion refused, :class:`.surfel_cover.UnionPolicy`: its
-        share of MOTION_LIMIT; the union of a batch that fits is taken, a third cheaper than enumerating a larger
-        batch on camera frames). Only the speed depends on it."""
-        n = min(self.batch, len(g) - 1 - s)
-        if union and self.span < float("inf"):
-            n = max(1, min(n, int(np.searchsorted(g, g[s] + self.span, side="right")) - 1 - s))
-        return n
 
     def segments(self, g, keep=None, parent=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``lo, hi`` (B, h, w, 3) float32 and ``constant`` (B, h, w) of the segments of the grid ``g``;
@@ -277,9 +263,6 @@ class _HullSweep(FootprintSweep):
         # where nothing else can be, decided once for the batch from where the footprints can be over it)
         sure_first, q, cp = first_covers(lambda: self.union(float(g[0]), float(g[-1])), lambda sub: _segment_boxes(*self.ranges(g, sub), H, W),
                                          B, EDGE_EPS, -EDGE_EPS, r.rank, r.samples, covered_pairs, candidates=True, policy=self.policy)
-        if self.policy.moved is not None:   # the union refused for the motion: later batches span a share of it
-            self.span = min(self.span, 0.9 * (float(g[-1]) - float(g[0])) / self.policy.moved)
-            self.policy.moved = None
         return sure_first.view(-1), q, cp
 
     def _values(self, B: int, sure_first: torch.Tensor, q: torch.Tensor, cp: torch.Tensor):

@@ -81,15 +81,12 @@ def widen(x: torch.Tensor, sign: float) -> torch.Tensor:
 class UnionPolicy:
     """Whether a batch tries the union first: after a batch whose pixels were mostly dynamic (a motion of a
     good part of a pixel per batch, e.g. a coarse rotation grid), the next ``RETRY_AFTER`` batches of the same
-    renderer or sweep enumerate their pairs directly. ``moved``: how many times ``MOTION_LIMIT`` the footprints of
-    the last batch refused for its motion moved (None: none refused since it was read), for a sweep to size its
-    next batches (:meth:`.surfel_bounds._HullSweep.batch_of`). Only the speed depends on it."""
+    renderer or sweep enumerate their pairs directly. Only the speed depends on it."""
 
     RETRY_AFTER = 4
 
     def __init__(self):
         self.skip = 0
-        self.moved: float | None = None
 
 
 def union_of(u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi):
@@ -144,10 +141,7 @@ def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: to
         # how far the footprints move over the batch (the union's width beyond the footprint's 1 + 2
         # SURFEL_OVERLAP px; the median surfel): past MOTION_LIMIT most pixels change, so enumerate directly
         move = torch.maximum(U[1] - U[0], U[3] - U[2])[umask & imask_u]
-        moved = float(move.median()) - (1.0 + 2 * SURFEL_OVERLAP) if len(move) else 0.0
-        if moved > MOTION_LIMIT:
-            if policy is not None and MOTION_LIMIT > 0:
-                policy.moved = moved / MOTION_LIMIT
+        if len(move) and float(move.median()) - (1.0 + 2 * SURFEL_OVERLAP) > MOTION_LIMIT:
             return enumerated()
     # 1. the union: per pixel the first pair in occlusion order, and the first surely covering throughout
     pt, pix, ins = pairs(*(x[None] for x in U), umask[None], samples, eps, inner=(*(x[None] for x in I), imask_u[None], ieps))
