@@ -314,20 +314,15 @@ def block_mean64(x: torch.Tensor, im: Imaging, offset: float = 0.0, at: torch.Te
     values (the same sums in the same order)."""
     k = im.factor
     h, w = im.out_shape
-    if at is not None:   # each block's k x k native pixels gathered by index, summed in _block_sums' order
+    if at is not None:   # each block's k x k native pixels gathered by index
         b, r, c = at.nonzero(as_tuple=True)
         Wn = w * k
         base = (b * (h * k) + r * k) * Wn + c * k                      # the block's first native pixel
         flat = x.reshape(-1, 3)
-        out = flat.index_select(0, base).to(torch.float64, copy=True)
-        for i in range(k):
-            for j in range(k):
-                if i or j:
-                    out.add_(flat.index_select(0, base + (i * Wn + j)))
-        if k > 1:
-            out /= float(k * k)
+        out = _block_sums(lambda i, j: flat.index_select(0, base + (i * Wn + j)), k)
         return out.add_(offset) if offset else out
-    out = _block_sums(x.view(x.shape[0], h, k, w, k, 3), k)
+    blocks = x.view(x.shape[0], h, k, w, k, 3)
+    out = _block_sums(lambda i, j: blocks[:, :, i, :, j], k)
     bx, by = im.border
     if bx:
         out[:, :, :bx] = im.background
@@ -340,14 +335,15 @@ def block_mean64(x: torch.Tensor, im: Imaging, offset: float = 0.0, at: torch.Te
     return out
 
 
-def _block_sums(blocks: torch.Tensor, k: int) -> torch.Tensor:
-    """The means of ``blocks`` (B, h, k, w, k, 3) over their k x k pixels in float64: the k*k strided slices summed
-    in a fixed order (faster than a two-axis mean), then / k^2."""
-    out = blocks[:, :, 0, :, 0].to(torch.float64, copy=True)
+def _block_sums(pixel, k: int) -> torch.Tensor:
+    """The means over k x k blocks in float64, ``pixel(i, j)`` the values of every block's pixel ``(i, j)``: summed
+    in one fixed order, row by row (faster than a two-axis mean, and the same sums bit for bit whichever way the
+    pixels are read), then / k^2."""
+    out = pixel(0, 0).to(torch.float64, copy=True)
     for i in range(k):
         for j in range(k):
             if i or j:
-                out += blocks[:, :, i, :, j]
+                out += pixel(i, j)
     if k > 1:
         out /= float(k * k)
     return out

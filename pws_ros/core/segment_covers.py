@@ -13,7 +13,7 @@ from .errors import require
 from .framing import EDGE_EPS
 from .surfel import SurfelRenderer, pixel_range
 from .surfel_bounds import _segment_boxes
-from .surfel_cover import unique_indices
+from .surfel_cover import lower_first, unique_indices
 
 if TYPE_CHECKING:
     from .surfel_bounds import _HullSweep
@@ -213,8 +213,7 @@ class SegmentCovers:
         sure = possible & pick(imask) & (pick(inner[0]) - ieps <= su) & (su < pick(inner[1]) + ieps) \
             & (pick(inner[2]) - ieps <= sv) & (sv < pick(inner[3]) + ieps)
         rk = r.rank.index_select(0, point)
-        sure = torch.nonzero(sure, as_tuple=True)[0]
-        first.scatter_reduce_(0, where.index_select(0, sure), rk.index_select(0, sure), reduce="amin", include_self=True)
+        lower_first(first, where, rk, sure)
         keep = torch.nonzero(possible & (rk < first.index_select(0, where)), as_tuple=True)[0]
         return first, where.index_select(0, keep), point.index_select(0, keep)
 

@@ -132,10 +132,15 @@ class SurfelRenderer:
         of those surfels only, (B, U), bit for bit the same values)."""
         corners, points = (self.corners, self.points) if subset is None else (self.corners.index_select(1, subset),
                                                                               self.points.index_select(0, subset))
-        u, v, d = project_corners(corners[None], self.intr, self.axis, alphas[:, None, None])   # (B, C', P)
-        zc = depth(points[None], self.axis, alphas[:, None], xp=torch)                          # (B, P)
-        drawn = (d > 0).all(dim=1) & (zc > 0)
-        return u.amin(1), u.amax(1), v.amin(1), v.amax(1), zc, drawn
+        return self._boxes(corners[None], points[None], alphas[:, None], 1)   # (B, C', P) corners, (B, P) each
+
+    def _boxes(self, corners: torch.Tensor, points: torch.Tensor, alphas: torch.Tensor, dim: int):
+        """Footprint boxes, centre depth and drawn mask of ``corners`` (corner axis ``dim``) and their ``points`` at
+        ``alphas`` (broadcast against ``points``' leading axes), element by element."""
+        u, v, d = project_corners(corners, self.intr, self.axis, alphas.unsqueeze(dim))
+        zc = depth(points, self.axis, alphas, xp=torch)
+        drawn = (d > 0).all(dim=dim) & (zc > 0)
+        return u.amin(dim), u.amax(dim), v.amin(dim), v.amax(dim), zc, drawn
 
     def first_ranks(self, alphas: torch.Tensor) -> torch.Tensor:
         """The rank (:meth:`_set_points`) of the surfel each native pixel shows, (B Hn Wn,) (``num_points``: none
@@ -175,12 +180,9 @@ class SurfelRenderer:
         flat batch: the footprints of :meth:`footprints` computed element by element, the same operations on the
         same numbers)."""
         HW = self.intr.height * self.intr.width
-        corners, points = self.corners.index_select(1, surfels), self.points.index_select(0, surfels)
-        u, v, d = project_corners(corners, self.intr, self.axis, alphas)                  # (C', N)
-        zc = depth(points, self.axis, alphas, xp=torch)                                   # (N,)
-        drawn = (d > 0).all(dim=0) & (zc > 0)
-        p_i, where, _ = covered_pairs(u.amin(0)[None], u.amax(0)[None], v.amin(0)[None], v.amax(0)[None], drawn[None],
-                                      self.samples, 0.0)
+        umin, umax, vmin, vmax, _, drawn = self._boxes(self.corners.index_select(1, surfels), self.points.index_select(0, surfels),
+                                                       alphas, 0)                           # (N,) each
+        p_i, where, _ = covered_pairs(umin[None], umax[None], vmin[None], vmax[None], drawn[None], self.samples, 0.0)
         where = where + poses.index_select(0, p_i) * HW
         return ranks.scatter_reduce_(0, where, self.rank.index_select(0, surfels.index_select(0, p_i)), reduce="amin",
                                      include_self=True)
@@ -306,9 +308,9 @@ def project_corners(corners: torch.Tensor, intr: CameraIntrinsics, axis: str, al
     :func:`.motion.project`), each (..., C', P): :func:`.motion.project` of every corner, except along ry with four
     corners, where a corner's ``u`` and depth depend on its ``X`` and ``Z`` only (the rotation leaves ``Y`` alone):
     those of the two columns (corners 0 and 1: ``X -+ hx``) are computed once, ``u`` and depth (..., 2, P) (corners 2
-    and 3 share them bit for bit: :meth:`FootprintSweep.ranges` folds their split events in by
-    :data:`RY_COLUMN`), and ``v`` (..., 4, P) from the rows' ``Y`` and the columns' ``1 / Z'``: the very operations
-    of :func:`.motion.project` on the same numbers."""
+    and 3 share them bit for bit; corner ``k = 2 row + column``: :meth:`FootprintSweep.ranges` folds the split events
+    of corner ``k`` into column ``k % 2``), and ``v`` (..., 4, P) from the rows' ``Y`` and the columns' ``1 / Z'``: the
+    very operations of :func:`.motion.project` on the same numbers."""
     if axis != "ry" or corners.shape[-3] != 4:
         return project(corners, intr, axis, alpha, xp=torch)
     cols = corners[..., 0:2, :, :]                          # corners 0 and 1: X - hx, X + hx (Z shared)
@@ -322,9 +324,6 @@ def project_corners(corners: torch.Tensor, intr: CameraIntrinsics, axis: str, al
                       value=intr.fy)                        # (..., row, column, P): corner 2 row + column
     return u, v.flatten(-3, -2), Zp
 
-
-# along ry, the column (u and depth slot) of each of the four corners (corner k = 2 row + column)
-RY_COLUMN = (0, 1, 0, 1)
 
 
 def surfel_corners(points: np.ndarray, intr: CameraIntrinsics) -> np.ndarray:
@@ -504,10 +503,10 @@ class FootprintSweep:
         if len(flat):
             uu, vv, dd = project(corners.reshape(-1, 3).index_select(0, flat), r.intr, r.axis, te, xp=torch)
             at = seg * (C * U) + flat
-            au = at
-            if Cu != C:   # ry: u and depth per column (project_corners), v per corner
-                k, p = torch.div(flat, U, rounding_mode="floor"), flat % U
-                au = seg * (Cu * U) + torch.as_tensor(RY_COLUMN, device=r.device).index_select(0, k) * U + p
+            # u and depth of corner k = 2 row + column go to slot k % Cu: its column along ry (project_corners),
+            # the corner itself elsewhere (Cu = C)
+            k = torch.div(flat, U, rounding_mode="floor")
+            au = seg * (Cu * U) + (k % Cu) * U + (flat - k * U)
             # in place: each range is a new tensor of its own (no copy of the whole range per event scatter)
             u_lo.scatter_reduce_(0, au, uu, "amin")
             u_hi.scatter_reduce_(0, au, uu, "amax")
@@ -540,5 +539,5 @@ class FootprintSweep:
         return ((z_hi > 0) & (inside | wild)).cpu().numpy()
 
 
-__all__ = ["FootprintSweep", "RY_COLUMN", "SamplePoints", "SurfelRenderer", "bin_cloud", "covered_pairs", "footprint_corners",
+__all__ = ["FootprintSweep", "SamplePoints", "SurfelRenderer", "bin_cloud", "covered_pairs", "footprint_corners",
            "occlusion_key", "pixel_range", "project_corners", "surfel_corners"]

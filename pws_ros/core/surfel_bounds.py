@@ -305,7 +305,8 @@ class _HullSweep(FootprintSweep):
         # (elsewhere lo == hi there, or the border: the same sums), taken there alone in the same order
         mean = block_mean64(lo.view(B, H, W, 3), im)
         lo_o = (mean - VALUE_EPS).to(torch.float32)
-        mean[~one] = block_mean64(hi.view(B, H, W, 3), im, at=~one)
+        changing = ~one
+        mean[changing] = block_mean64(hi.view(B, H, W, 3), im, at=changing)
         hi_o = mean.add_(VALUE_EPS).to(torch.float32)
         return lo_o.cpu().numpy(), hi_o.cpu().numpy(), one.cpu().numpy()
 

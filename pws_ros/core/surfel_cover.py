@@ -72,6 +72,13 @@ def unique_indices(x: torch.Tensor, n: int, inverse: bool = True):
     return subset, torch.cumsum(mark, 0).sub_(1).index_select(0, x)
 
 
+def lower_first(first: torch.Tensor, where: torch.Tensor, ranks: torch.Tensor, sure: torch.Tensor) -> torch.Tensor:
+    """``first`` lowered in place, at ``where``, to the ``ranks`` of the pairs flagged ``sure`` (the first surely
+    covering surfel of each element and pixel)."""
+    i = torch.nonzero(sure, as_tuple=True)[0]
+    return first.scatter_reduce_(0, where.index_select(0, i), ranks.index_select(0, i), "amin", include_self=True)
+
+
 def widen(x: torch.Tensor, sign: float) -> torch.Tensor:
     """``x`` moved by ``UNION_SLACK`` outwards (``sign`` -1: down, +1: up; NaN: to that infinity)."""
     y = torch.add(x, x.abs().mul_(UNION_SLACK).add_(UNION_SLACK), alpha=sign)   # x + sign (SLACK + SLACK |x|)
@@ -147,9 +154,7 @@ def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: to
     pt, pix, ins = pairs(*(x[None] for x in U), umask[None], samples, eps, inner=(*(x[None] for x in I), imask_u[None], ieps))
     rk = rank.index_select(0, pt)
     r_first = torch.full((HW,), P, dtype=torch.long, device=dev).scatter_reduce_(0, pix, rk, "amin", include_self=True)
-    ins = torch.nonzero(ins, as_tuple=True)[0]
-    s_first = torch.full((HW,), P, dtype=torch.long, device=dev).scatter_reduce_(0, pix.index_select(0, ins), rk.index_select(0, ins),
-                                                                                  "amin", include_self=True)
+    s_first = lower_first(torch.full((HW,), P, dtype=torch.long, device=dev), pix, rk, ins)
     first = s_first.expand(B, HW).clone()
     # 2. the dynamic pixels: their union pairs up to the static first one, tested element by element
     dyn = torch.nonzero((r_first < s_first).index_select(0, pix) & (rk <= s_first.index_select(0, pix)), as_tuple=True)[0]
@@ -176,8 +181,7 @@ def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: to
         possible = (g[0] <= su) & (su < g[1]) & (g[2] <= sv) & (sv < g[3])
         sure = possible & (g[4] <= su) & (su < g[5]) & (g[6] <= sv) & (sv < g[7])
         at, rkb = at.view(-1), rk.repeat(B)                                    # (B D,)
-        sure = torch.nonzero(sure.view(-1), as_tuple=True)[0]
-        flat.scatter_reduce_(0, at.index_select(0, sure), rkb.index_select(0, sure), "amin", include_self=True)
+        lower_first(flat, at, rkb, sure.view(-1))
         if candidates:
             keep = torch.nonzero(possible.view(-1) & (rkb <= flat.index_select(0, at)), as_tuple=True)[0]
             where_out.append(at.index_select(0, keep))
@@ -197,10 +201,10 @@ def reference_first_covers(outer, omask, inner, imask, eps: float, ieps: float, 
     cp, q, is_sure = pairs(*outer, omask, samples, eps, inner=(*inner, imask, ieps))
     first = torch.full((B * HW,), P, dtype=torch.long, device=rank.device)
     rk = rank.index_select(0, cp)
-    sure = torch.nonzero(is_sure, as_tuple=True)[0]
-    first.scatter_reduce_(0, q.index_select(0, sure), rk.index_select(0, sure), reduce="amin", include_self=True)
+    lower_first(first, q, rk, is_sure)
     keep = torch.nonzero(rk <= first.index_select(0, q), as_tuple=True)[0]
     return first.view(B, HW), q.index_select(0, keep), cp.index_select(0, keep)
 
 
-__all__ = ["UnionPolicy", "first_covers", "range_implied", "reference_first_covers", "union_of", "unique_indices", "widen"]
+__all__ = ["UnionPolicy", "first_covers", "lower_first", "range_implied", "reference_first_covers", "union_of", "unique_indices",
+           "widen"]
