@@ -166,6 +166,7 @@ def _check_sound(cert):
 @example(seed=20)   # tz: 48 anchors 22% where 24 certified 48%, before the fix
 @example(seed=64)   # ry: 24 -> 48 anchors 87% -> 83% before the plan's first look was chosen per budget (now 98%)
 @example(seed=128)  # tz: 24 -> 48 anchors 88% -> 78%, the same (now 97%)
+@example(seed=2774)  # a scene where the budget barely matters (8.4% at 4 anchors, 11.0% from 8 on)
 def test_more_anchors_never_certify_less_on_synthetic_frames(seed):
     """Non-decreasing up to FRONTIER_SLACK of the request: what the placements predict (the anchors'
     planned radii) never decreases; the frontier refinement after the estimation then resolves the end of
@@ -176,7 +177,9 @@ def test_more_anchors_never_certify_less_on_synthetic_frames(seed):
     certs = _ceilings(cloud, cam, im, axis, radius, BUDGETS, border=0, seed=seed)
     radii = [c.radius for c in certs]
     assert all(b >= a - FRONTIER_SLACK * radius for a, b in zip(radii, radii[1:])), (axis, [r / radius for r in radii])
-    assert radii[-1] >= max(radii) - FRONTIER_SLACK * radius and radii[-1] > 1.5 * radii[0]
+    # (whether the budget matters is the scene's: seed 2774 certifies 8.4% at 4 anchors and 11.0% from 8 on; that it
+    # does on the examples is test_the_budget_decides_on_the_synthetic_frames)
+    assert radii[-1] >= max(radii) - FRONTIER_SLACK * radius
     for c in certs:
         _check_sound(c)
 

@@ -54,8 +54,8 @@ def test_lower_bounds_are_below_the_distances(seed, offset, points):
 @settings(max_examples=25, deadline=None)
 @given(st.integers(0, 10**6), st.floats(0.0, 2.0), st.sampled_from([1, 3, 4]))
 def test_rows_compare_as_the_exact_rows(seed, t_frac, block):
-    """Every comparison with a radius up to the threshold comes out as the exact value's; calls where some
-    segment may be below it are the exact ones, bit for bit."""
+    """Every comparison with a radius up to the threshold comes out as the exact value's; a segment that may be
+    below it is the exact value, bit for bit."""
     f, hv = _case(seed, S=9, h=3, w=4, spread=0.1)
     exact = np.stack([hv.dist_sq(f[j]) for j in range(len(f))])
     thr = float(np.quantile(exact, 0.3)) * t_frac
@@ -64,10 +64,10 @@ def test_rows_compare_as_the_exact_rows(seed, t_frac, block):
         for i0 in range(0, hv.num_segments, block):
             got = d.row(j, i0, i0 + block)
             want = hv.dist_sq(f[j], slice(i0, i0 + block))
-            if (j, i0, min(i0 + block, hv.num_segments)) in d.approx:
-                assert np.all(got >= thr) and np.all(got <= want)
-            else:
-                assert np.array_equal(got, want)
+            i1 = min(i0 + block, hv.num_segments)
+            bound = np.array([(j, i, i1 - i0 == 1) in d.approx for i in range(i0, i1)])
+            assert np.all(got[bound] >= thr) and np.all(got[bound] <= want[bound])
+            assert np.array_equal(got[~bound], want[~bound])
             for t_sq in (0.0, thr * 0.5, thr * 0.999, thr):
                 assert np.array_equal(got < t_sq, want < t_sq)
 
@@ -196,26 +196,52 @@ def test_a_repeated_call_is_computed_once_and_returns_its_own_copy():
     d = DistanceRows(hv, f, float("inf"))
     a = d.row(2, 0, 8)
     want = hv.dist_sq(f[2], slice(0, 8))
-    assert np.array_equal(a, want) and d.exact_calls == 1
+    assert np.array_equal(a, want) and d.exact_calls == 8
     a[:] = -1.0
     b = d.row(2, 0, 8)
-    assert np.array_equal(b, want) and d.exact_calls == 1
-    assert np.array_equal(d.row(2, 0, 4), hv.dist_sq(f[2], slice(0, 4))) and d.exact_calls == 2
+    assert np.array_equal(b, want) and d.exact_calls == 8
+    assert np.array_equal(d.row(2, 0, 4), hv.dist_sq(f[2], slice(0, 4))) and d.exact_calls == 8
+    assert np.array_equal(d.row(2, 6, 10), hv.dist_sq(f[2], slice(6, 10))) and d.exact_calls == 10
+    assert np.array_equal(d.row(2, 3, 4), hv.dist_sq(f[2], slice(3, 4))) and d.exact_calls == 11   # alone: its own call
 
 
-def test_distances_in_blocks_are_those_of_the_whole_call(monkeypatch):
-    """HullValues.dist_sq takes its segments a few at a time (temporaries in the cache), never one alone when a
-    call has more: every call gives bit for bit what one block of all its segments gives (blocks of two, the
-    smallest, against a block larger than any call), and within the float64 loops' rounding of _brute."""
+def test_a_segments_distance_is_the_same_in_every_call_of_several(monkeypatch):
+    """HullValues.dist_sq takes its segments a few at a time (temporaries in the cache), never one alone when a call
+    has more: a segment's value is bit for bit the same in every call of two or more segments (in blocks of two, the
+    smallest, or in one block larger than any call; with any other segments), and within the float64 loops'
+    rounding of _brute. (numpy's einsum sums a lone row in another order: a row of 9000 values here.)"""
     import pws_ros.core.surfel_bounds as sb
 
-    f, hv = _case(6, S=11, h=50, w=60)   # 9000 values a segment: a row alone is summed in another order there
-    calls = [(j, a, b) for j in (0, 6, 11) for a in range(11) for b in range(a + 1, 12)]
+    f, hv = _case(6, S=11, h=50, w=60)
     monkeypatch.setattr(sb, "DIST_CHUNK_VALUES", 10**9)
-    whole = {c: hv.dist_sq(f[c[0]], slice(c[1], c[2])) for c in calls}
-    monkeypatch.setattr(sb, "DIST_CHUNK_VALUES", 1)
-    for c in calls:
-        np.testing.assert_array_equal(hv.dist_sq(f[c[0]], slice(c[1], c[2])), whole[c])
+    whole = {j: hv.dist_sq(f[j]) for j in (0, 6, 11)}
+    calls = [(j, a, b) for j in whole for a in range(11) for b in range(a + 2, 12)]
+    rng = np.random.default_rng(1)
+    subsets = [(j, np.sort(rng.choice(11, rng.integers(2, 6), replace=False))) for j in whole for _ in range(8)]
+    for chunk in (10**9, 1):
+        monkeypatch.setattr(sb, "DIST_CHUNK_VALUES", chunk)
+        for j, a, b in calls:
+            np.testing.assert_array_equal(hv.dist_sq(f[j], slice(a, b)), whole[j][a:b])
+        for j, at in subsets:
+            np.testing.assert_array_equal(hv.dist_sq(f[j], at), whole[j][at])
     ref = _brute(f, hv)
-    for j, a, b in calls:
-        np.testing.assert_allclose(whole[(j, a, b)], ref[j, a:b] * sb.SAFETY, rtol=1e-12)
+    for j in whole:
+        np.testing.assert_allclose(whole[j], ref[j] * sb.SAFETY, rtol=1e-12)
+        for i in range(11):   # alone: within rounding too
+            np.testing.assert_allclose(hv.dist_sq(f[j], slice(i, i + 1)), ref[j, i] * sb.SAFETY, rtol=1e-12)
+
+
+def test_each_value_is_that_of_the_call_asked_for():
+    """DistanceRows computes only the segments a comparison may need, but each as the call asked for computes it:
+    a piece of several segments as a call of them (bit for bit), a piece of one segment alone."""
+    f, hv = _case(12, S=13, h=50, w=60, spread=0.1)
+    exact = np.stack([hv.dist_sq(f[j]) for j in range(len(f))])
+    thr = float(np.quantile(exact, 0.5))
+    d = DistanceRows(hv, f, thr)
+    for j in range(len(f)):
+        for i0, i1 in ((0, 8), (8, 13), (12, 13), (3, 4), (5, 7)):
+            got = d.row(j, i0, i1)
+            want = hv.dist_sq(f[j], slice(i0, i1))
+            need = d.lower[j, i0:i1] < thr
+            assert np.array_equal(got[need], want[need]), (j, i0, i1)
+    assert 0 < d.exact_calls < exact.size

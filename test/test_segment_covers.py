@@ -189,9 +189,18 @@ def _refined(rng, grid):
 
 
 def _decisions(monkeypatch):
+    """Counts the segments SegmentCovers.decide decides; each such refinement takes its parents' values at their
+    constant pixels (SegmentCovers.kept_values, whatever share of the pixels is constant there) and computes the rest."""
     calls = []
     decide = SegmentCovers.decide
-    monkeypatch.setattr(SegmentCovers, "decide", lambda self, sweep, g: calls.append(len(g) - 1) or decide(self, sweep, g))
+
+    def counted(self, sweep, g):
+        assert self.values is not None and self.kept_values(g) is not None
+        calls.append(len(g) - 1)
+        return decide(self, sweep, g)
+
+    monkeypatch.setattr(SegmentCovers, "decide", counted)
+    monkeypatch.setattr(sb, "KEPT_SHARE", 1.0)
     return calls
 
 
@@ -271,7 +280,9 @@ def test_refined_bounds_from_the_covers_on_random_clouds(seed, axis, scale):
     fine = _refined(rng, grid)
     b = grid[-1]
     assert covers.decides(fine)
-    got = hulls_within(r, -b, b)(fine, parent=covers)
+    with pytest.MonkeyPatch.context() as mp:   # the parents' constant pixels kept, whatever their share
+        mp.setattr(sb, "KEPT_SHARE", 1.0)
+        got = hulls_within(r, -b, b)(fine, parent=covers)
     if axis == "tz":
         ref = hulls_within(r, -b, b)(fine)
         for name in ("lo", "hi", "constant"):
@@ -358,6 +369,10 @@ def test_refinements_of_a_real_frame_are_bounded_as_from_every_surfel(monkeypatc
         return got
 
     monkeypatch.setattr(anchor_geometry, "refined_hulls", checked)
+    kept = []
+    kept_values = SegmentCovers.kept_values
+    monkeypatch.setattr(SegmentCovers, "kept_values", lambda self, g: kept.append(1) or kept_values(self, g))
+    monkeypatch.setattr(sb, "KEPT_SHARE", 1.0)   # every refinement keeps its parents' constant pixels
     config = PwsConfig().with_params({"axes": [axis]})
     ceiling(ReplayOptions(bag=bag, config=config, write_output=False, quiet=True, max_frames=1), None, input_size=(90, 160))
-    assert sum(compared) > 100
+    assert sum(compared) > 100 and kept

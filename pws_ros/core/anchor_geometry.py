@@ -185,9 +185,10 @@ def refined_hulls(bounds_of, old_grid: np.ndarray, old, grid: np.ndarray, covers
         for s, e in zip(starts, ends):
             part = bounds_of(grid[s:e + 1]) if covers is None else bounds_of(grid[s:e + 1], covers[1], at=int(s))
             lo[s:e], hi[s:e], constant[s:e] = part.lo, part.hi, part.constant
+    values = HullValues(grid, lo, hi, constant, dict(old.details, segments=S))
     if covers is not None:
-        covers[1].close()
-    return HullValues(grid, lo, hi, constant, dict(old.details, segments=S))
+        covers[1].close(values)
+    return values
 
 
 __all__ = ["COVERS_BYTES", "grid_cap", "refine_for_target", "refined_hulls"]

@@ -12,10 +12,10 @@ value, the largest distance of a segment to its nearest anchor (:meth:`DistanceR
 and ``|y - c|^2`` of every grid frame ``y`` and segment is one matrix product (centred on one frame, so
 the terms are small), taken in float64 with its rounding bound subtracted (Higham, Accuracy and Stability
 of Numerical Algorithms, 3.1: a sum of ``n`` products in any order errs by at most ``gamma_n`` times the
-sum of their magnitudes). Where the bound of some segment of a requested block is below the threshold,
-the block is computed exactly as before (the same call, so bit for bit the same values); elsewhere the
-bound is returned: every comparison with a ``t^2`` up to the threshold comes out as the exact value's
-would (``exact >= bound >= threshold >= t^2``). So the anchors, the radius and every value a certificate
+sum of their magnitudes). Where the bound of a segment is below the threshold,
+its value is computed exactly (bit for bit the value of any call that asks for it); elsewhere the bound is
+returned: every comparison with a ``t^2`` up to the threshold comes out as the exact value's would
+(``exact >= bound >= threshold >= t^2``). So the anchors, the radius and every value a certificate
 reports are those of the exact rows; only the time differs.
 """
 from __future__ import annotations
@@ -28,75 +28,94 @@ GRAM_CHUNK = 2048                          # values per column chunk of the prod
 
 class DistanceRows:
     """``row(j, i0, i1)``: ``D_i(x_j)^2`` for segments ``i0 .. i1 - 1`` of ``hulls`` (a HullValues) and
-    grid frame ``frames[j]``, exact wherever some segment of the call may be below ``threshold_sq``
-    (module doc), else a lower bound that is at least ``threshold_sq`` everywhere in the call."""
+    grid frame ``frames[j]``, exact for each segment whose bound may be below ``threshold_sq`` (module doc),
+    else that lower bound, which is at least ``threshold_sq``. Each exact value is computed once, and is bit for
+    bit the value of a call of ``i0 .. i1 - 1`` (:meth:`.surfel_bounds.HullValues.dist_sq` gives a segment the
+    same value in every call of two or more segments, and sums it in another order in a call of it alone: a piece
+    of one segment is computed alone, any other in a call of two or more)."""
 
     def __init__(self, hulls, frames: np.ndarray, threshold_sq: float):
         self.hulls, self.frames = hulls, frames
         self.threshold_sq = float(threshold_sq)
         self.lower = _lower_bounds(hulls, frames)
-        self.approx: set[tuple[int, int, int]] = set()   # (j, i0, i1) calls answered by the bound
-        self.exact_calls = 0                            # exact rows computed
-        self.bound_calls = 0                            # calls answered by the bound
-        # exact rows by call: the placements of several budgets (.anchors.best_placement) read the same pieces
-        self._exact: dict[tuple[int, int, int], np.ndarray] = {}
+        # (j, i, alone): answered by the bound, in a piece of segment i alone or not
+        self.approx: set[tuple[int, int, bool]] = set()
+        self.exact_calls = 0                              # exact values computed
+        self.bound_calls = 0                              # values answered by the bound
+        # exact values by (j, i, alone): the placements of several budgets (.anchors.best_placement) read the same pieces
+        self._exact: dict[tuple[int, int, bool], float] = {}
+
+    def _values(self, j: int, segments: list[int], alone: bool) -> np.ndarray:
+        """The exact ``D_i(x_j)^2`` of ``segments``, those not known yet computed: each in a call of its own where
+        ``alone``, else together in one call of two or more (another segment joins one that would be alone)."""
+        j = int(j)
+        todo = [i for i in segments if (j, i, alone) not in self._exact]
+        if todo:
+            y = self.frames[j]
+            if alone:
+                got = [float(self.hulls.dist_sq(y, slice(i, i + 1))[0]) for i in todo]
+            else:
+                ask = todo if len(todo) > 1 else todo + [todo[0] + 1 if todo[0] + 1 < self.hulls.num_segments else todo[0] - 1]
+                got = self.hulls.dist_sq(y, np.asarray(ask, dtype=np.int64)).tolist()
+                todo = ask
+            self.exact_calls += len(todo)
+            self._exact.update(zip(((j, i, alone) for i in todo), got))
+        return np.array([self._exact[(j, i, alone)] for i in segments], dtype=np.float64)
 
     def exact(self, j: int, i0: int, i1: int) -> np.ndarray:
-        key = (int(j), int(i0), int(i1))
-        got = self._exact.get(key)
-        if got is None:
-            self.exact_calls += 1
-            got = self._exact[key] = self.hulls.dist_sq(self.frames[j], slice(i0, i1))
-        return got.copy()
+        """``D_i(x_j)^2`` for ``i0 <= i < i1``, exact (as one call of them)."""
+        return self._values(j, list(range(int(i0), int(i1))), int(i1) - int(i0) == 1)
 
     def row(self, j: int, i0: int = 0, i1: int | None = None) -> np.ndarray:
         S = self.hulls.num_segments
         i1 = S if i1 is None else min(int(i1), S)
         i0 = max(0, int(i0))
-        lb = self.lower[j, i0:i1]
-        if not len(lb) or bool((lb < self.threshold_sq).any()):
-            return self.exact(j, i0, i1)
-        self.approx.add((int(j), i0, i1))
-        self.bound_calls += 1
-        return lb.copy()
+        j, alone = int(j), i1 - i0 == 1
+        out = self.lower[j, i0:i1].copy()
+        need = out < self.threshold_sq
+        if need.any():
+            at = np.flatnonzero(need)
+            out[at] = self._values(j, (at + i0).tolist(), alone)
+        bounded = np.flatnonzero(~need)
+        if len(bounded):
+            self.approx.update((j, int(i), alone) for i in bounded + i0)
+            self.bound_calls += len(bounded)
+        return out
+
+    def _make_exact(self, rows: np.ndarray, where: dict[int, int], entries) -> None:
+        """``rows[where[j], i]`` made exact for the ``(j, i, alone)`` of ``entries`` (one call per grid frame)."""
+        by: dict[tuple[int, bool], list[int]] = {}
+        for j, i, alone in entries:
+            by.setdefault((j, alone), []).append(i)
+        for (j, alone), segs in by.items():
+            segs = sorted(segs)
+            rows[where[j], segs] = self._values(j, segs, alone)
+            self.approx.difference_update((j, i, alone) for i in segs)
 
     def complete(self, rows: np.ndarray, idx, threshold_sq: float) -> None:
         """Make ``rows`` (the rows of grid frames ``idx``, as this object's calls gave them) exact wherever a
-        call was answered by the bound and some segment of it lies below ``threshold_sq`` (a comparison with
-        a larger radius than the placement's threshold: the estimated Cohen radii)."""
+        value was answered by the bound and that bound lies below ``threshold_sq`` (a comparison with a larger
+        radius than the placement's threshold: the estimated Cohen radii)."""
         if threshold_sq <= self.threshold_sq:
             return
         where = {int(j): k for k, j in enumerate(idx)}
-        for (j, i0, i1) in sorted(self.approx):
-            k = where.get(j)
-            if k is not None and bool((self.lower[j, i0:i1] < threshold_sq).any()):
-                rows[k, i0:i1] = self.exact(j, i0, i1)
-                self.approx.discard((j, i0, i1))
+        self._make_exact(rows, where, [e for e in self.approx if e[0] in where and self.lower[e[0], e[1]] < threshold_sq])
 
     def max_min(self, rows: np.ndarray, idx) -> float:
         """``max_i min_k rows[k, i]`` of the exact rows, where ``rows`` may hold bounds (:meth:`complete`):
-        while a column's least entry is a bound, that block is computed exactly (a bound below every exact
-        entry of its column could hide a smaller exact value; at the end each column's least entry is exact
-        and no bound is below it, so it is the exact minimum)."""
+        while a column's least entry is a bound, it is computed exactly (a bound below every exact entry of its
+        column could hide a smaller exact value; at the end each column's least entry is exact and no bound is
+        below it, so it is the exact minimum)."""
         if rows.size == 0:
             return 0.0
         where = {int(j): k for k, j in enumerate(idx)}
-        blocks = {}
-        for (j, i0, i1) in self.approx:
-            k = where.get(j)
-            if k is not None:
-                for i in range(i0, i1):
-                    blocks[(k, i)] = (j, i0, i1)
+        bounded: dict[tuple[int, int], bool] = {(j, i): alone for j, i, alone in self.approx if j in where}
         while True:
             arg = rows.argmin(axis=0)
-            todo = {blocks[(int(k), i)] for i, k in enumerate(arg) if (int(k), i) in blocks}
+            todo = [(j, i, bounded.pop((j, i))) for i, j in enumerate(int(idx[k]) for k in arg.tolist()) if (j, i) in bounded]
             if not todo:
                 return float(rows.min(axis=0).max())
-            for (j, i0, i1) in todo:
-                rows[where[j], i0:i1] = self.exact(j, i0, i1)
-                self.approx.discard((j, i0, i1))
-                for i in range(i0, i1):
-                    blocks.pop((where[j], i), None)
+            self._make_exact(rows, where, todo)
 
 
 def _lower_bounds(hulls, frames: np.ndarray) -> np.ndarray:

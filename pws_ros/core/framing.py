@@ -309,15 +309,13 @@ def reduce_frames(native: torch.Tensor, imaging: Imaging) -> torch.Tensor:
 def block_mean64(x: torch.Tensor, im: Imaging, offset: float = 0.0, at: torch.Tensor | None = None) -> torch.Tensor:
     """Block mean in float64 of native images (B, Hn, Wn, 3) to the output size, border set to background,
     plus ``offset`` everywhere. ``x`` float32 or float64: every sum is taken in float64 (a float32 value
-    converts exactly), so both give the same result bit for bit. ``at`` (B, h, w) bool, true outside the border
-    only: the output pixels where it is true alone, (N, 3) in the order of ``at.nonzero()``, bit for bit those
-    values (the same sums in the same order)."""
+    converts exactly), so both give the same result bit for bit. ``at``: output pixels outside the border only,
+    (B, h, w) bool or their flat indices ``(b h + row) w + column`` ascending (:func:`block_origins`): those alone,
+    (N, 3) in the order of ``at.nonzero()``, bit for bit those values (the same sums in the same order)."""
     k = im.factor
     h, w = im.out_shape
     if at is not None:   # each block's k x k native pixels gathered by index
-        b, r, c = at.nonzero(as_tuple=True)
-        Wn = w * k
-        base = (b * (h * k) + r * k) * Wn + c * k                      # the block's first native pixel
+        base, Wn = block_origins(at, im), w * k
         flat = x.reshape(-1, 3)
         out = _block_sums(lambda i, j: flat.index_select(0, base + (i * Wn + j)), k)
         return out.add_(offset) if offset else out
@@ -335,6 +333,16 @@ def block_mean64(x: torch.Tensor, im: Imaging, offset: float = 0.0, at: torch.Te
     return out
 
 
+def block_origins(at: torch.Tensor, im: Imaging) -> torch.Tensor:
+    """The native pixel (``(b H + row) W + column``) at the top left of the block of each output pixel of ``at``:
+    (B, h, w) bool, or the flat indices ``(b h + row) w + column`` of output pixels; in the order of ``at.nonzero()``."""
+    k = im.factor
+    h, w = im.out_shape
+    o = at.view(-1).nonzero(as_tuple=True)[0] if at.dtype == torch.bool else at
+    b, rc = torch.div(o, h * w, rounding_mode="floor"), o % (h * w)
+    return (b * (h * k) + torch.div(rc, w, rounding_mode="floor") * k) * (w * k) + (rc % w) * k
+
+
 def _block_sums(pixel, k: int) -> torch.Tensor:
     """The means over k x k blocks in float64, ``pixel(i, j)`` the values of every block's pixel ``(i, j)``: summed
     in one fixed order, row by row (faster than a two-axis mean, and the same sums bit for bit whichever way the
@@ -350,4 +358,4 @@ def _block_sums(pixel, k: int) -> torch.Tensor:
 
 
 __all__ = ["DEFAULT_RENDER_FACTOR", "EDGE_EPS", "IMAGING_KINDS", "Imaging", "SAFETY", "SAMPLE_JITTER", "SUBJECT_STEP", "SURFEL_OVERLAP",
-           "UNCOVERED", "VALUE_EPS", "WINDOW_MARGIN", "auto_border", "block_mean64", "make_imaging", "reduce_frames", "window_subject"]
+           "UNCOVERED", "VALUE_EPS", "WINDOW_MARGIN", "auto_border", "block_mean64", "block_origins", "make_imaging", "reduce_frames", "window_subject"]

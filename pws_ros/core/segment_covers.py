@@ -51,6 +51,7 @@ class SegmentCovers:
         self.first = None if self.dropped else torch.empty((S, HW), dtype=torch.int32, device=renderer.device)
         self._parts: list[tuple[torch.Tensor, torch.Tensor]] = []
         self.where = self.point = self.starts = None
+        self.values = None   # the bounds these covers decided (a HullValues of the grid, given to close)
 
     def add(self, s: int, sure_first: torch.Tensor, q: torch.Tensor, cp: torch.Tensor) -> None:
         """Segments ``s ..``: ``sure_first`` (B H W,) ranks, candidates ``(q, cp)`` with ``q`` counted from segment ``s``."""
@@ -81,10 +82,13 @@ class SegmentCovers:
         if self.used + 3 * (self.used - 4 * self.first.numel()) > self.max_bytes:
             self.dropped, self.first, self._parts = True, None, []
 
-    def close(self) -> None:
-        """The candidates of every segment in order (where = segment * H * W + pixel)."""
+    def close(self, values=None) -> None:
+        """The candidates of every segment in order (where = segment * H * W + pixel); ``values``: the bounds they
+        decided (a :class:`.surfel_bounds.HullValues` of the grid), whose constant pixels a refinement keeps
+        (:meth:`kept_values`)."""
         if self.dropped:
             return
+        self.values = values
         S, HW = self.first.shape
         dev = self.first.device
         where = torch.cat([w for w, _ in self._parts]) if self._parts else torch.zeros(0, dtype=torch.long, device=dev)
@@ -138,6 +142,25 @@ class SegmentCovers:
     def render_batch(self, alphas) -> torch.Tensor:
         """The renderer's ``render_batch(alphas)`` for poses inside the grid, decided from the covers."""
         return self.r.render_batch(alphas, ranks=self.first_ranks)
+
+    def kept_values(self, g):
+        """For the segments of the grid ``g`` (:meth:`decides`): their parents' bounds ``lo``, ``hi`` (B, h, w, 3) and
+        where a parent is constant (B, h, w), numpy; None where :meth:`close` was given no bounds.
+
+        Where a parent segment is constant, the bounds :meth:`decide` leads to for a child (:mod:`.surfel_bounds`'
+        values) are the parent's, bit for bit, so they need not be computed. Constant means every native pixel of the
+        output pixel has no candidate whose colour differs from that of its first surely covering surfel (or its
+        uncovered value), by ``!=``, or that it is in the border (whose values are the background's in every
+        segment). The child's first surely covering surfel is the parent's or one of its candidates, and the child's
+        candidates are some of the parent's (:meth:`decide`), so each native pixel's first value in the child equals
+        the parent's (up to the sign of a zero) and no child candidate differs from it: the child is constant there,
+        with the same block means (the same sums in the same order; a sum of zeros only may differ in its sign, which
+        the bounds' ``VALUE_EPS`` removes) and so the same ``lo``, ``hi``."""
+        if self.values is None:
+            return None
+        k = self._parents(np.asarray(g, dtype=np.float64))
+        v = self.values
+        return v.lo[k], v.hi[k], v.constant[k]
 
     def decides(self, g) -> bool:
         """Whether :meth:`decide` applies to the segments of the grid ``g``: kept covers, each segment inside one of

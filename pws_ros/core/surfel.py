@@ -123,6 +123,13 @@ class SurfelRenderer:
         rows = ranks.view(-1, HW)
         return torch.where(rows == P, torch.arange(P, P + HW, device=ranks.device), rows).view(-1)
 
+    def shade_rows_at(self, ranks: torch.Tensor, where: torch.Tensor) -> torch.Tensor:
+        """:meth:`shade_rows` of ``ranks`` (B H W,) at the native pixels ``where`` (b H W + pixel) only."""
+        HW = self.intr.height * self.intr.width
+        P = self.num_points
+        rows = ranks.index_select(0, where)
+        return torch.where(rows == P, where % HW + P, rows)
+
     @property
     def chunk_size(self) -> int:
         return max(1, self.max_elements // max(1, 4 * self.num_points))

@@ -24,7 +24,7 @@ import torch
 
 from .cloud import Cloud
 from .errors import require
-from .framing import EDGE_EPS, SAFETY, VALUE_EPS, Imaging, block_mean64
+from .framing import EDGE_EPS, SAFETY, VALUE_EPS, Imaging, block_mean64, block_origins
 from .partition import validate_grid
 from .surfel import FootprintSweep, SurfelRenderer, covered_pairs
 from .surfel_cover import UnionPolicy, first_covers
@@ -40,6 +40,7 @@ class HullValues:
     hi: np.ndarray
     constant: np.ndarray   # (S, H, W): the pixel shows one value throughout the segment (bitwise)
     details: dict[str, Any] = field(default_factory=dict)
+    _scratch: Any = field(default=None, repr=False, compare=False)   # dist_sq's two buffers, kept between calls
 
     @property
     def num_segments(self) -> int:
@@ -47,30 +48,39 @@ class HullValues:
 
     def dist_sq(self, y: np.ndarray, segments: slice | np.ndarray | None = None) -> np.ndarray:
         """``D_i(y)^2 = sum max((lo - y)^2, (hi - y)^2)``: ``|x(alpha) - y|^2 <= D_i(y)^2`` on segment ``i``."""
-        sel = slice(None) if segments is None else segments
-        y = _as_numpy(y)
-        lo, hi = self.lo[sel], self.hi[sel]
-        S = len(lo)
+        at = np.arange(self.num_segments)[slice(None) if segments is None else segments]
+        y = _as_numpy(y).reshape(-1)
+        lo, hi = self.lo.reshape(len(self.lo), -1), self.hi.reshape(len(self.hi), -1)
+        S, V = len(at), lo.shape[1]
         out = np.empty(S)
         # max((lo - y)^2, (hi - y)^2) = max(y - lo, hi - y)^2 (one of the two is the larger magnitude): float64
-        # throughout (the bounds cast first, then subtracted in place: cheaper than a casting ufunc, the same values),
-        # the squares of each segment summed as one dot product. Taken a few segments at a time, so that the two
-        # temporaries stay in the cache; never one segment alone when the call has more (numpy's einsum sums a single
-        # row in another order than each row of a block of several, and every block of two or more alike: the same
-        # values as the whole call's one block, bit for bit)
-        step = max(2, DIST_CHUNK_VALUES // max(1, lo[0].size)) if S > 1 else 1
+        # throughout (the bounds cast as they are copied, then subtracted in place: cheaper than a casting ufunc, the
+        # same values), the squares of each segment summed as one dot product. Taken a few segments at a time in two
+        # buffers kept for the next call (they stay in the cache, and no page is mapped anew). Never one segment alone
+        # when the call has more: numpy's einsum sums a lone row in another order than each row of a block of two or
+        # more, and every block of two or more alike, so a segment's value is the same bit for bit in every call of
+        # two or more segments, whichever they are (a call of one segment sums it alone)
+        step = max(2, DIST_CHUNK_VALUES // max(1, V)) if S > 1 else 1
         starts = list(range(0, S, step))
         if len(starts) > 1 and S - starts[-1] == 1:
-            starts.pop()   # the last block takes the row that would be alone
+            starts.pop()   # the last block takes the segment that would be alone
+        m, d = self._buffers(min(S, step + 1), V)
         for s, e in zip(starts, starts[1:] + [S]):
-            m = lo[s:e].astype(np.float64)
-            np.subtract(y, m, out=m)
-            d = hi[s:e].astype(np.float64)
-            np.subtract(d, y, out=d)
-            np.maximum(m, d, out=m)
-            m = m.reshape(e - s, -1)
-            out[s:e] = np.einsum("ij,ij->i", m, m)
+            for k, i in enumerate(at[s:e].tolist()):
+                m[k], d[k] = lo[i], hi[i]
+            mm, dd = m[:e - s], d[:e - s]
+            np.subtract(y, mm, out=mm)
+            np.subtract(dd, y, out=dd)
+            np.maximum(mm, dd, out=mm)
+            out[s:e] = np.einsum("ij,ij->i", mm, mm)
         return out * SAFETY
+
+    def _buffers(self, rows: int, V: int) -> tuple[np.ndarray, np.ndarray]:
+        """Two float64 buffers of at least ``rows`` rows of ``V`` values (kept for the next call)."""
+        got = self._scratch
+        if got is None or got[0].shape[0] < rows or got[0].shape[1] != V:
+            got = self._scratch = (np.empty((rows, V)), np.empty((rows, V)))
+        return got
 
     def pair_bound_sq(self, frames, k0: int = 0) -> np.ndarray:
         """``|x(alpha) - x_i|^2 + |x(alpha) - x_{i+1}|^2`` bounds for segments ``k0 .. k0 + len(frames) - 2``."""
@@ -211,14 +221,18 @@ def hulls_within(renderer: SurfelRenderer, lo: float, hi: float, *, max_bytes: i
         for s in range(0, S, sweep.batch):
             e = min(S, s + sweep.batch)
             l_[s:e], h_[s:e], constant[s:e] = sweep.segments(g[s:e + 1], None if covers is None else (covers, (at or 0) + s), parent)
+        values = HullValues(g, l_, h_, constant, {"surfels": renderer.num_points, "segments": S})
         if covers is not None and at is None:
-            covers.close()
-        return HullValues(g, l_, h_, constant, {"surfels": renderer.num_points, "segments": S})
+            covers.close(values)
+        return values
 
     return hulls
 
 
 DIST_CHUNK_VALUES = 2**17       # float64 values per temporary of HullValues.dist_sq (1 MiB: in the cache)
+# the largest share of output pixels not constant in the parent segments for which a refinement computes only those
+# (gathered by index; more, and every output pixel is computed: measured on camera frames, about where both cost the same)
+KEPT_SHARE = 0.25
 HULL_BATCH_ELEMENTS = 300_000   # surfel-segments bounded per batch of segments (about 0.5 KB each at the peak: ~160 MB)
 
 
@@ -242,13 +256,15 @@ class _HullSweep(FootprintSweep):
         hold these (:meth:`.segment_covers.SegmentCovers.decide`, where it applies), the same values."""
         g = np.asarray(g, dtype=np.float64)
         B = len(g) - 1
+        kept = None
         if parent is not None and parent.decides(g):
             sure_first, q, cp = parent.decide(self, g)
+            kept = parent.kept_values(g)
         else:
             sure_first, q, cp = self._decide(g)
         if keep is not None:
             keep[0].add(keep[1], sure_first, q, cp)
-        return self._values(B, sure_first, q, cp)
+        return self._values(B, sure_first, q, cp, kept)
 
     def _decide(self, g) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The first surely covering ranks (B H W,) and candidates of the segments of ``g`` from every surfel."""
@@ -265,50 +281,91 @@ class _HullSweep(FootprintSweep):
                                          B, EDGE_EPS, -EDGE_EPS, r.rank, r.samples, covered_pairs, candidates=True, policy=self.policy)
         return sure_first.view(-1), q, cp
 
-    def _values(self, B: int, sure_first: torch.Tensor, q: torch.Tensor, cp: torch.Tensor):
+    def _values(self, B: int, sure_first: torch.Tensor, q: torch.Tensor, cp: torch.Tensor, kept=None):
         """:meth:`segments`' values of ``B`` segments from their first surely covering ranks (B H W,) and
         candidates (``q = segment * H * W + pixel``, surfel ``cp``; any outer pairs of rank at most the first,
-        at least those of rank below it)."""
+        at least those of rank below it). ``kept``: the parents' ``lo``, ``hi`` and constant pixels
+        (:meth:`.segment_covers.SegmentCovers.kept_values`), the values there, so that only the other output pixels
+        are computed (the same values, bit for bit)."""
         r = self.r
         H, W = r.intr.height, r.intr.width
         # the values of the native pixels: the renderer's own float32 colours (and its uncovered value of
         # each pixel where no surfel surely covers it: the renderer's table), their least and greatest per channel
         # exactly
         HW = H * W
-        lo = r.shades.index_select(0, r.shade_rows(sure_first))                                # (B HW, 3)
-        hi = lo.clone()
         im = r.imaging
         k = im.factor
         h, w = im.out_shape
         # output pixels whose every native pixel has one value throughout (lo == hi: no candidate's colour differs
         # from the pixel's first value): bitwise constant over the segment
         one = torch.ones(B * h * w, dtype=torch.bool, device=r.device)
+        moved = vals = None
         if len(cp):
             vals = r.colors.index_select(0, cp)
             # the candidates whose colour differs from the pixel's first value: only they move lo and hi (a colour
             # equal to it in every channel leaves both as they are, up to the sign of a zero, which no block mean
             # widened by VALUE_EPS below keeps)
-            differ = torch.nonzero((vals != lo.index_select(0, q)).any(1), as_tuple=True)[0]
+            first_q = r.shades.index_select(0, r.shade_rows_at(sure_first, q))
+            differ = torch.nonzero((vals != first_q).any(1), as_tuple=True)[0]
             moved, vals = q.index_select(0, differ), vals.index_select(0, differ)
             b, p = torch.div(moved, HW, rounding_mode="floor"), moved % HW
             one[(b * h + torch.div(p, W * k, rounding_mode="floor")) * w + torch.div(p % W, k, rounding_mode="floor")] = False
-            idx = moved[:, None].expand(-1, 3)
-            lo.scatter_reduce_(0, idx, vals, reduce="amin", include_self=True)
-            hi.scatter_reduce_(0, idx, vals, reduce="amax", include_self=True)
         one = one.view(B, h, w)
         bx, by = im.border
         if bx:
             one[:, :, :bx] = one[:, :, w - bx:] = True
         if by:
             one[:, :by] = one[:, h - by:] = True
-        # the block means of lo; those of hi differ only at the output pixels some native pixel of which changes
-        # (elsewhere lo == hi there, or the border: the same sums), taken there alone in the same order
-        mean = block_mean64(lo.view(B, H, W, 3), im)
-        lo_o = (mean - VALUE_EPS).to(torch.float32)
         changing = ~one
-        mean[changing] = block_mean64(hi.view(B, H, W, 3), im, at=changing)
-        hi_o = mean.add_(VALUE_EPS).to(torch.float32)
-        return lo_o.cpu().numpy(), hi_o.cpu().numpy(), one.cpu().numpy()
+        if kept is not None and float(kept[2].mean()) < 1.0 - KEPT_SHARE:
+            kept = None   # most output pixels change in the parents: computing them all costs less than gathering them
+        if kept is None:
+            # every output pixel: lo of every native pixel, its block means; those of hi differ only at the output
+            # pixels some native pixel of which changes (elsewhere lo == hi there, or the border: the same sums),
+            # taken there alone in the same order
+            lo = r.shades.index_select(0, r.shade_rows(sure_first))                                # (B HW, 3)
+            hi = lo.clone()
+            _spread(lo, hi, moved, vals)
+            mean = block_mean64(lo.view(B, H, W, 3), im)
+            lo_o = (mean - VALUE_EPS).to(torch.float32)
+            mean[changing] = block_mean64(hi.view(B, H, W, 3), im, at=changing)
+            hi_o = mean.add_(VALUE_EPS).to(torch.float32)
+            return lo_o.cpu().numpy(), hi_o.cpu().numpy(), one.cpu().numpy()
+        # the parents' values where a parent is constant (so is the child, with the same values); the other output
+        # pixels (outside the border) computed as above from their native pixels alone
+        p_lo, p_hi, p_const = kept
+        todo = torch.nonzero((~torch.as_tensor(p_const, device=r.device) | changing).view(-1), as_tuple=True)[0]
+        ch = torch.nonzero(changing.view(-1), as_tuple=True)[0]                  # (inside todo)
+        nat = _natives(todo, im)
+        lo = torch.empty((B * HW, 3), dtype=torch.float32, device=r.device)
+        lo.index_copy_(0, nat, r.shades.index_select(0, r.shade_rows_at(sure_first, nat)))
+        hi = torch.empty_like(lo)
+        nat = _natives(ch, im)
+        hi.index_copy_(0, nat, lo.index_select(0, nat))
+        _spread(lo, hi, moved, vals)
+        mean = block_mean64(lo.view(B, H, W, 3), im, at=todo)                 # (N, 3), in the order of todo
+        lo_o = torch.from_numpy(p_lo).view(-1, 3)   # (copies: kept_values gathers the parents' rows)
+        lo_o.index_copy_(0, todo.cpu(), (mean - VALUE_EPS).to(torch.float32).cpu())
+        mean.index_copy_(0, torch.searchsorted(todo, ch), block_mean64(hi.view(B, H, W, 3), im, at=ch))
+        hi_o = torch.from_numpy(p_hi).view(-1, 3)
+        hi_o.index_copy_(0, todo.cpu(), mean.add_(VALUE_EPS).to(torch.float32).cpu())
+        return p_lo, p_hi, one.cpu().numpy()
+
+
+def _spread(lo: torch.Tensor, hi: torch.Tensor, moved, vals) -> None:
+    """``lo``, ``hi`` (B H W, 3) lowered and raised, in place, to the colours ``vals`` of the candidates at native pixels
+    ``moved``."""
+    if moved is not None and len(moved):
+        idx = moved[:, None].expand(-1, 3)
+        lo.scatter_reduce_(0, idx, vals, reduce="amin", include_self=True)
+        hi.scatter_reduce_(0, idx, vals, reduce="amax", include_self=True)
+
+
+def _natives(at: torch.Tensor, im: Imaging) -> torch.Tensor:
+    """The native pixels (``(b H + row) W + column``) of the output pixels ``at`` (flat indices, :func:`.framing.block_origins`)."""
+    k, W = im.factor, im.out_shape[1] * im.factor
+    off = (torch.arange(k, device=at.device)[:, None] * W + torch.arange(k, device=at.device)[None, :]).view(-1)
+    return (block_origins(at, im)[:, None] + off[None, :]).view(-1)
 
 
 def _segment_boxes(u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi, H: int, W: int):
