@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 U64 = float(np.finfo(np.float64).eps) / 2   # unit roundoff of float64
-GRAM_CHUNK = 2048                          # values per column chunk of the product (memory stays bounded)
+GRAM_CHUNK = 512                           # values per column chunk of the product (its temporaries stay in the cache)
 
 
 class DistanceRows:
@@ -131,14 +131,17 @@ def _lower_bounds(hulls, frames: np.ndarray) -> np.ndarray:
         e = min(n, s + GRAM_CHUNK)
         # float32 values in float64: their differences and sums are exact unless their exponents differ by about
         # 30 (then the rounding is relative to the centred values, or 2u r, within the slack below)
-        y = Y[:, s:e].astype(np.float64) - ref[s:e]
-        l64, h64 = lo[:, s:e].astype(np.float64), hi[:, s:e].astype(np.float64)
-        c = (l64 + h64) * 0.5 - ref[s:e]
-        r = (h64 - l64) * 0.5
+        y = Y[:, s:e].astype(np.float64)
+        y -= ref[s:e]
+        c, h64 = lo[:, s:e].astype(np.float64), hi[:, s:e].astype(np.float64)
+        r2 = h64 - c                  # 2 r (its squares' sum times 1/4: the same as r's, scaling by 2 is exact)
+        c += h64                      # c = (lo + hi) / 2 - ref, in place
+        c *= 0.5
+        c -= ref[s:e]
         G += y @ c.T
         yy += np.einsum("ij,ij->i", y, y)
         cc += np.einsum("ij,ij->i", c, c)
-        rr += np.einsum("ij,ij->i", r, r)
+        rr += 0.25 * np.einsum("ij,ij->i", r2, r2)
     # |y - c|^2 = |y|^2 + |c|^2 - 2 y.c; each of the three sums of n products errs by at most gamma times its
     # magnitudes' sum (|y|^2, |c|^2, |y||c|), the chunks' partial sums included; the two additions by 2u more
     gamma = 2.0 * (n + n // GRAM_CHUNK + 8) * U64
