@@ -245,3 +245,11 @@ def test_each_value_is_that_of_the_call_asked_for():
             need = d.lower[j, i0:i1] < thr
             assert np.array_equal(got[need], want[need]), (j, i0, i1)
     assert 0 < d.exact_calls < exact.size
+
+
+def test_no_segments_give_no_distances():
+    """An empty selection, or bounds of no segment, give an empty row (not an error)."""
+    f, hv = _case(3, S=4, h=3, w=4)
+    assert hv.dist_sq(f[0], slice(2, 2)).shape == (0,) and hv.dist_sq(f[0], np.array([], dtype=np.int64)).shape == (0,)
+    empty = HullValues(np.array([0.0]), hv.lo[:0], hv.hi[:0], hv.constant[:0])
+    assert empty.dist_sq(f[0]).shape == (0,)

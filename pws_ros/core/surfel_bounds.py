@@ -50,8 +50,9 @@ class HullValues:
         """``D_i(y)^2 = sum max((lo - y)^2, (hi - y)^2)``: ``|x(alpha) - y|^2 <= D_i(y)^2`` on segment ``i``."""
         at = np.arange(self.num_segments)[slice(None) if segments is None else segments]
         y = _as_numpy(y).reshape(-1)
-        lo, hi = self.lo.reshape(len(self.lo), -1), self.hi.reshape(len(self.hi), -1)
-        S, V = len(at), lo.shape[1]
+        V = int(np.prod(self.lo.shape[1:]))
+        lo, hi = self.lo.reshape(len(self.lo), V), self.hi.reshape(len(self.hi), V)
+        S = len(at)
         out = np.empty(S)
         # max((lo - y)^2, (hi - y)^2) = max(y - lo, hi - y)^2 (one of the two is the larger magnitude): float64
         # throughout (the bounds cast as they are copied, then subtracted in place: cheaper than a casting ufunc, the
