@@ -44,6 +44,7 @@ class DistanceRows:
         self.bound_calls = 0                              # values answered by the bound
         # exact values by (j, i, alone): the placements of several budgets (.anchors.best_placement) read the same pieces
         self._exact: dict[tuple[int, int, bool], float] = {}
+        self._scratch: list = []                          # HullValues.dist_sq's work buffers, kept between its calls
 
     def _values(self, j: int, segments: list[int], alone: bool) -> np.ndarray:
         """The exact ``D_i(x_j)^2`` of ``segments``, those not known yet computed: each in a call of its own where
@@ -53,18 +54,14 @@ class DistanceRows:
         if todo:
             y = self.frames[j]
             if alone:
-                got = [float(self.hulls.dist_sq(y, slice(i, i + 1))[0]) for i in todo]
+                got = [float(self.hulls.dist_sq(y, slice(i, i + 1), self._scratch)[0]) for i in todo]
             else:
                 ask = todo if len(todo) > 1 else todo + [todo[0] + 1 if todo[0] + 1 < self.hulls.num_segments else todo[0] - 1]
-                got = self.hulls.dist_sq(y, np.asarray(ask, dtype=np.int64)).tolist()
+                got = self.hulls.dist_sq(y, np.asarray(ask, dtype=np.int64), self._scratch).tolist()
                 todo = ask
             self.exact_calls += len(todo)
             self._exact.update(zip(((j, i, alone) for i in todo), got))
         return np.array([self._exact[(j, i, alone)] for i in segments], dtype=np.float64)
-
-    def exact(self, j: int, i0: int, i1: int) -> np.ndarray:
-        """``D_i(x_j)^2`` for ``i0 <= i < i1``, exact (as one call of them)."""
-        return self._values(j, list(range(int(i0), int(i1))), int(i1) - int(i0) == 1)
 
     def row(self, j: int, i0: int = 0, i1: int | None = None) -> np.ndarray:
         S = self.hulls.num_segments

@@ -332,7 +332,6 @@ def project_corners(corners: torch.Tensor, intr: CameraIntrinsics, axis: str, al
     return u, v.flatten(-3, -2), Zp
 
 
-
 def surfel_corners(points: np.ndarray, intr: CameraIntrinsics) -> np.ndarray:
     """The four corners ``(4, P, 3)`` of every surfel (see the module doc); a point at depth <= 0 has a
     surfel of size 0."""

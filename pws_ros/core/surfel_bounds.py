@@ -40,14 +40,14 @@ class HullValues:
     hi: np.ndarray
     constant: np.ndarray   # (S, H, W): the pixel shows one value throughout the segment (bitwise)
     details: dict[str, Any] = field(default_factory=dict)
-    _scratch: Any = field(default=None, repr=False, compare=False)   # dist_sq's two buffers, kept between calls
 
     @property
     def num_segments(self) -> int:
         return len(self.alphas) - 1
 
-    def dist_sq(self, y: np.ndarray, segments: slice | np.ndarray | None = None) -> np.ndarray:
-        """``D_i(y)^2 = sum max((lo - y)^2, (hi - y)^2)``: ``|x(alpha) - y|^2 <= D_i(y)^2`` on segment ``i``."""
+    def dist_sq(self, y: np.ndarray, segments: slice | np.ndarray | None = None, scratch: list | None = None) -> np.ndarray:
+        """``D_i(y)^2 = sum max((lo - y)^2, (hi - y)^2)``: ``|x(alpha) - y|^2 <= D_i(y)^2`` on segment ``i``.
+        ``scratch``: a list the caller keeps for its many calls, where the two work buffers stay between them."""
         at = np.arange(self.num_segments)[slice(None) if segments is None else segments]
         y = _as_numpy(y).reshape(-1)
         V = int(np.prod(self.lo.shape[1:]))
@@ -57,7 +57,7 @@ class HullValues:
         # max((lo - y)^2, (hi - y)^2) = max(y - lo, hi - y)^2 (one of the two is the larger magnitude): float64
         # throughout (the bounds cast as they are copied, then subtracted in place: cheaper than a casting ufunc, the
         # same values), the squares of each segment summed as one dot product. Taken a few segments at a time in two
-        # buffers kept for the next call (they stay in the cache, and no page is mapped anew). Never one segment alone
+        # buffers (kept in ``scratch`` for the next call: they stay in the cache, no page is mapped anew). Never one segment alone
         # when the call has more: numpy's einsum sums a lone row in another order than each row of a block of two or
         # more, and every block of two or more alike, so a segment's value is the same bit for bit in every call of
         # two or more segments, whichever they are (a call of one segment sums it alone)
@@ -65,7 +65,7 @@ class HullValues:
         starts = list(range(0, S, step))
         if len(starts) > 1 and S - starts[-1] == 1:
             starts.pop()   # the last block takes the segment that would be alone
-        m, d = self._buffers(min(S, step + 1), V)
+        m, d = _work_buffers(scratch, min(S, step + 1), V)
         for s, e in zip(starts, starts[1:] + [S]):
             for k, i in enumerate(at[s:e].tolist()):
                 m[k], d[k] = lo[i], hi[i]
@@ -75,13 +75,6 @@ class HullValues:
             np.maximum(mm, dd, out=mm)
             out[s:e] = np.einsum("ij,ij->i", mm, mm)
         return out * SAFETY
-
-    def _buffers(self, rows: int, V: int) -> tuple[np.ndarray, np.ndarray]:
-        """Two float64 buffers of at least ``rows`` rows of ``V`` values (kept for the next call)."""
-        got = self._scratch
-        if got is None or got[0].shape[0] < rows or got[0].shape[1] != V:
-            got = self._scratch = (np.empty((rows, V)), np.empty((rows, V)))
-        return got
 
     def pair_bound_sq(self, frames, k0: int = 0) -> np.ndarray:
         """``|x(alpha) - x_i|^2 + |x(alpha) - x_{i+1}|^2`` bounds for segments ``k0 .. k0 + len(frames) - 2``."""
@@ -180,6 +173,17 @@ def render_plan_surfel(cloud: Cloud, imaging: Imaging, plan, device: str = "cpu"
     hulls = segment_hulls(r, plan.alphas)
     f = frames.cpu().numpy()
     return RenderedPlan(plan, frames, hulls.pair_bound_sq(f), hulls.to_segment_values(f), time.perf_counter() - t0)
+
+
+def _work_buffers(scratch: list | None, rows: int, V: int) -> list[np.ndarray]:
+    """Two float64 buffers of at least ``rows`` rows of ``V`` values: those kept in ``scratch`` if they fit, else new
+    ones (kept there)."""
+    if scratch and scratch[0].shape[0] >= rows and scratch[0].shape[1] == V:
+        return scratch
+    got = [np.empty((rows, V)), np.empty((rows, V))]
+    if scratch is not None:
+        scratch[:] = got
+    return got
 
 
 def _as_numpy(x, dtype=np.float64) -> np.ndarray:
