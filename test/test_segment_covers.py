@@ -376,3 +376,115 @@ def test_refinements_of_a_real_frame_are_bounded_as_from_every_surfel(monkeypatc
     config = PwsConfig().with_params({"axes": [axis]})
     ceiling(ReplayOptions(bag=bag, config=config, write_output=False, quiet=True, max_frames=1), None, input_size=(90, 160))
     assert sum(compared) > 100 and kept
+
+
+def _median_motion(points, intr, axis: str, a: float, b: float) -> float:
+    """How far (px) the median point moves between poses ``a`` and ``b``: the larger of its moves in ``u`` and ``v``,
+    each point projected through ``R^T (P - t)`` in plain float64 loops (points projected onto depth 0 left out)."""
+    import math
+    import statistics
+
+    def uv(p, alpha):
+        X, Y, Z = (float(x) for x in p)
+        c, s = math.cos(alpha), math.sin(alpha)
+        X, Y, Z = {"tx": (X - alpha, Y, Z), "ty": (X, Y - alpha, Z), "tz": (X, Y, Z - alpha),
+                   "rx": (X, c * Y + s * Z, -s * Y + c * Z), "ry": (c * X - s * Z, Y, s * X + c * Z),
+                   "rz": (c * X + s * Y, -s * X + c * Y, Z)}[axis]
+        return None if Z == 0.0 else (intr.fx * X / Z + intr.cx + 0.5, intr.fy * Y / Z + intr.cy + 0.5)
+
+    moves = []
+    for p in points:
+        p0, p1 = uv(p, a), uv(p, b)
+        if p0 is not None and p1 is not None:
+            moves.append(max(abs(p1[0] - p0[0]), abs(p1[1] - p0[1])))
+    return statistics.median(moves)
+
+
+def test_the_coarse_grid_is_every_kth_point_where_the_median_surfel_barely_moves():
+    """:func:`.anchor_geometry.coarse_grid` against a plain computation: the largest ``k`` of ``COARSE_STEPS`` whose
+    ``k`` segments the median surfel crosses within ``COARSE_MOTION`` px (the segments taken as even over the grid), on
+    grids of at least ``4 k + 1`` points; every ``k``-th point counted from ``alpha = 0``, with both ends; else None.
+    Each outcome (8, 4, none) occurs, and a grid whose ``alpha = 0`` is not a multiple of ``k`` from its start."""
+    seen, offset = set(), False
+    for seed, axis, scale, n in [(0, "tz", 0.2, 129), (1, "tz", 2.0, 33), (2, "tz", 20.0, 129), (3, "ry", 1.0, 41),
+                                 (4, "tx", 0.05, 17), (5, "rz", 0.3, 65), (6, "tz", 1.0, 16), (7, "rx", 0.01, 129)]:
+        rng = np.random.default_rng(seed)
+        b = RADIUS[axis] * scale
+        im = make_imaging("surfel", CAM, (12, 16), render_factor=2, uncovered="frame")
+        r = SurfelRenderer(random_cloud(rng), im, axis, alpha_range=(-b, b))
+        g = np.union1d(np.linspace(-b, 0.7 * b, n), [0.0])   # alpha = 0 off the grid's middle
+        got = anchor_geometry.coarse_grid(r, g, CertifyConfig())
+        per_segment = _median_motion(r.points_np, r.intr, axis, float(g[0]), float(g[-1])) / (len(g) - 1)
+        steps = [k for k in anchor_geometry.COARSE_STEPS if len(g) >= 4 * k + 1 and k * per_segment <= anchor_geometry.COARSE_MOTION]
+        if not steps:
+            assert got is None, (seed, axis)
+            seen.add(None)
+            continue
+        k, centre = steps[0], list(g).index(0.0)
+        want = sorted({i for i in range(len(g)) if (i - centre) % k == 0} | {0, len(g) - 1})
+        np.testing.assert_array_equal(got, g[want], err_msg=f"{seed} {axis}")
+        seen.add(k)
+        offset |= centre % k != 0
+    assert seen == {8, 4, None} and offset
+
+
+def _geometry_bounds(monkeypatch, r, g, coarse: bool):
+    """The bounds and frames ``prepare`` gives the grid ``g``, with or without its coarse grid (forced where used),
+    the grids bounded, and the covers kept."""
+    from pws_ros.core.partition import Plan
+
+    monkeypatch.setattr(anchor_geometry, "COARSE_MOTION", float("inf") if coarse else -1.0)
+    monkeypatch.setattr(anchor_geometry, "COARSE_STEPS", (4,))
+    geometry = anchor_geometry._RendererGeometry(r, CertifyConfig())
+    bounded = []
+    bounds = geometry.bounds
+    monkeypatch.setattr(geometry, "bounds", lambda plan: bounded.append(len(plan.alphas)) or bounds(plan))
+    plan = Plan("pws_of", r.axis, float(g[-1]), float(np.diff(g).max()), len(g), g)
+    geometry.prepare(plan)
+    return geometry._last[1], geometry.frames(plan), bounded, geometry._covers
+
+
+@pytest.mark.parametrize("axis", ["tx", "ty", "tz", "rx", "ry", "rz"])
+def test_a_grid_bounded_through_its_coarse_grid_is_bounded_as_from_every_surfel(monkeypatch, axis):
+    """``prepare`` bounding a coarse grid first and the grid from its covers gives the bounds of every segment as from
+    every surfel bit for bit (proven along a translation, measured along a rotation: SegmentCovers.decide), the
+    renderer's frames, and keeps the covers of the grid itself (its refinement decides from them)."""
+    decided = _decisions(monkeypatch)
+    for seed in (5, 11):
+        rng = np.random.default_rng(seed)
+        b = RADIUS[axis] * 2.0
+        im = make_imaging("surfel", CAM, (12, 16), render_factor=2, uncovered="frame")
+        r = SurfelRenderer(random_cloud(rng), im, axis, alpha_range=(-b, b))
+        g = np.union1d(np.sort(rng.uniform(-b, b, 30)), [-b, 0.0, b])
+        ref = hulls_within(r, -b, b)(g)
+        direct, direct_frames, bounded, _ = _geometry_bounds(monkeypatch, r, g, coarse=False)
+        got, frames, bounded_coarse, covers = _geometry_bounds(monkeypatch, r, g, coarse=True)
+        assert bounded == [len(g)] and bounded_coarse[1:] == [len(g)] and bounded_coarse[0] < len(g) // 3
+        for name in ("lo", "hi", "constant"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=f"{axis} seed {seed} {name}")
+            np.testing.assert_array_equal(getattr(direct, name), getattr(ref, name))
+        assert not ref.constant.all()
+        np.testing.assert_array_equal(frames, r.render_batch(g).numpy())
+        np.testing.assert_array_equal(direct_frames, frames)
+        assert covers is not None and np.array_equal(covers.grid, g) and covers.decides(_refined(rng, g))
+    assert sum(decided) > 0
+
+
+def test_the_coarse_first_grid_changes_no_certificate(monkeypatch):
+    """The certificates of the anchors' path (the grid to begin with bounded through a coarse grid, forced) are those
+    of bounding it from every surfel, along a translation and a rotation."""
+    used = []
+    coarse_grid = anchor_geometry.coarse_grid
+    for seed, axis, radius in [(0, "tz", 0.4), (1, "tz", 0.4), (0, "ry", 0.08)]:
+        cam, cloud, _, _ = _scene(seed)
+        im = make_imaging("surfel", cam, (12, 16), background=0.0, border=0)
+        model = never_changing_model(im.out_shape)
+        cfg = CertifyConfig(sigma=0.5, n0=64, n=256, alpha=0.01, num_anchors=8, border=0, seed=seed)
+        certs = []
+        for limit in (-1.0, float("inf")):
+            monkeypatch.setattr(anchor_geometry, "COARSE_MOTION", limit)
+            monkeypatch.setattr(anchor_geometry, "COARSE_STEPS", (2,))
+            monkeypatch.setattr(anchor_geometry, "coarse_grid", lambda *a: used.append(a[1]) or coarse_grid(*a))
+            certs.append(certify(cloud, cam, model, axis, radius, "pws_of", replace(cfg), imaging=im))
+        assert certs[0].status != "error" and _fields(certs[0]) == _fields(certs[1]), (seed, axis)
+    assert len(used) == 6 and all(len(g) >= 9 for g in used)
