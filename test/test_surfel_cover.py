@@ -160,3 +160,34 @@ def test_unique_indices_are_numpy_unique(n, raw):
     np.testing.assert_array_equal(got.numpy(), want)
     np.testing.assert_array_equal(got_inv.numpy(), inv.reshape(-1))
     np.testing.assert_array_equal(cover.unique_indices(torch.as_tensor(x), n, inverse=False).numpy(), want)
+
+
+def test_batches_after_one_that_moves_too_far_skip_the_union(monkeypatch):
+    """A grid whose footprints move more than ``MOTION_LIMIT`` over a batch: the union is computed for its first batch,
+    then skipped for ``UnionPolicy.RETRY_AFTER`` batches (enumerated directly) and tried again; the bounds are those of
+    computing the union for every batch (only the speed depends on the policy)."""
+    import pws_ros.core.surfel_bounds as sb
+
+    rng = np.random.default_rng(2)
+    cloud = random_cloud(rng)
+    b = RADIUS["ry"] * 4.0
+    im = make_imaging("surfel", CAM, (12, 16), render_factor=2, uncovered="frame")
+    grid = np.linspace(-b, b, 61)
+    monkeypatch.setattr(cover, "MOTION_LIMIT", 0.0)
+    monkeypatch.setattr(sb, "HULL_BATCH_ELEMENTS", 3 * len(cloud.points))   # 3 segments a batch: 20 batches
+    unions = []
+    union = FootprintSweep.union
+    monkeypatch.setattr(FootprintSweep, "union", lambda self, a, b_: unions.append(a) or union(self, a, b_))
+
+    def run():
+        r = SurfelRenderer(cloud, im, "ry", alpha_range=(-b, b))
+        return hulls_within(r, -b, b)(grid)
+
+    got = run()
+    assert len(unions) == 20 // (cover.UnionPolicy.RETRY_AFTER + 1)
+    unions.clear()
+    monkeypatch.setattr(cover.UnionPolicy, "RETRY_AFTER", 0)
+    ref = run()
+    assert len(unions) == 20
+    for name in ("lo", "hi", "constant"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(ref, name))

@@ -86,9 +86,10 @@ def widen(x: torch.Tensor, sign: float) -> torch.Tensor:
 
 
 class UnionPolicy:
-    """Whether a batch tries the union first: after a batch whose pixels were mostly dynamic (a motion of a
-    good part of a pixel per batch, e.g. a coarse rotation grid), the next ``RETRY_AFTER`` batches of the same
-    renderer or sweep enumerate their pairs directly. Only the speed depends on it."""
+    """Whether a batch tries the union first: after a batch whose pixels were mostly dynamic, or whose footprints
+    moved more than ``MOTION_LIMIT`` (a motion of a good part of a pixel per batch, e.g. a coarse rotation grid), the
+    next ``RETRY_AFTER`` batches of the same renderer or sweep enumerate their pairs directly. Only the speed depends
+    on it."""
 
     RETRY_AFTER = 4
 
@@ -149,6 +150,8 @@ def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: to
         # SURFEL_OVERLAP px; the median surfel): past MOTION_LIMIT most pixels change, so enumerate directly
         move = torch.maximum(U[1] - U[0], U[3] - U[2])[umask & imask_u]
         if len(move) and float(move.median()) - (1.0 + 2 * SURFEL_OVERLAP) > MOTION_LIMIT:
+            if policy is not None:   # the next batches of a grid move about as much: no union for them either
+                policy.skip = policy.RETRY_AFTER
             return enumerated()
     # 1. the union: per pixel the first pair in occlusion order, and the first surely covering throughout
     pt, pix, ins = pairs(*(x[None] for x in U), umask[None], samples, eps, inner=(*(x[None] for x in I), imask_u[None], ieps))
