@@ -117,6 +117,32 @@ def test_packing_bound_is_a_lower_bound(seed, n, R):
     assert 1 <= k <= min_cover(flat, R)
 
 
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(2, 40), tie=st.booleans())
+def test_packing_bound_picks_as_comparing_every_pair(seed, n, tie):
+    """The greedy picks with the triangle-inequality shortcut are those of comparing each frame with every picked one
+    (written out here with float64 sums of squares), on random walks of frames; with ``tie``, 2R is the distance of one
+    pair as computed (comparisons at the threshold itself)."""
+    rng = np.random.default_rng(seed)
+    frames = np.cumsum(rng.normal(0, 0.05, (n, 6, 5, 3)), axis=0).astype(np.float32)
+    flat = [f.astype(np.float64).reshape(-1) for f in frames]
+    if tie:
+        i, j = sorted(rng.choice(n, 2, replace=False))
+        R = math.sqrt(float(np.sum((flat[i] - flat[j]) ** 2))) / 2
+    else:
+        R = float(rng.uniform(0.01, 1.0))
+    lim = (2.0 * R) ** 2
+    picked = []
+    for x in flat:
+        ok = True
+        for y in picked:
+            if float(np.sum((x - y) ** 2)) < lim:
+                ok = False
+        if ok:
+            picked.append(x)
+    assert packing_bound(frames, R) == len(picked)
+
+
 def test_packing_bound_exact_on_a_spaced_line():
     pts = np.arange(6, dtype=np.float32).reshape(6, 1, 1, 1)      # spacing 1
     assert packing_bound(pts, 0.5) == 6                           # no ball of radius 0.5 holds two of them
