@@ -488,3 +488,46 @@ def test_the_coarse_first_grid_changes_no_certificate(monkeypatch):
             certs.append(certify(cloud, cam, model, axis, radius, "pws_of", replace(cfg), imaging=im))
         assert certs[0].status != "error" and _fields(certs[0]) == _fields(certs[1]), (seed, axis)
     assert len(used) == 6 and all(len(g) >= 9 for g in used)
+
+
+@pytest.mark.parametrize("finer_kept", [True, False])
+def test_a_refinements_new_frames_come_from_its_own_covers(monkeypatch, finer_kept):
+    """``refine`` bounds the refined grid first and renders its new poses from the refined grid's covers (or, where
+    those are beyond the memory ceiling, from the coarser grid's): the renderer's frames bit for bit; the bounds asked
+    for next are those kept (no second bounding), the same as bounding the refined grid directly; their time is counted
+    as bounds (``pop_bounds_seconds``)."""
+    from pws_ros.core.partition import Plan
+
+    rng = np.random.default_rng(7)
+    b = RADIUS["tz"] * 2.0
+    im = make_imaging("surfel", CAM, (12, 16), render_factor=2, uncovered="frame")
+    r = SurfelRenderer(random_cloud(rng), im, "tz", alpha_range=(-b, b))
+    g = np.linspace(-b, b, 9)
+    if not finer_kept:   # room for the 8 segments' covers, not for the refined grid's
+        covers = SegmentCovers(r, g, BIG)
+        hulls_within(r, -b, b)(g, covers)
+        base = 4 * covers.first.numel()
+        monkeypatch.setattr(anchor_geometry, "COVERS_BYTES", covers.used + 3 * (covers.used - base))   # (their peak: _count)
+    monkeypatch.setattr(anchor_geometry, "COARSE_STEPS", ())
+    geometry = anchor_geometry._RendererGeometry(r, CertifyConfig())
+    plan = Plan("pws_of", "tz", b, float(g[1] - g[0]), len(g), g)
+    geometry.prepare(plan)
+    frames = geometry.frames(plan)
+    assert geometry._covers is not None and geometry.pop_bounds_seconds() == 0.0
+    rendered, bounded = [], []
+    render_batch = SegmentCovers.render_batch
+    monkeypatch.setattr(SegmentCovers, "render_batch", lambda self, a: rendered.append(len(self.grid)) or render_batch(self, a))
+    refined = anchor_geometry.refined_hulls
+    monkeypatch.setattr(anchor_geometry, "refined_hulls", lambda *a, **k: bounded.append(1) or refined(*a, **k))
+    finer, finer_frames = geometry.refine(plan, frames, 0.02, 50)
+    n = len(finer.alphas)
+    assert n > len(g) and bounded == [1]
+    assert rendered == ([n] if finer_kept else [len(g)])
+    assert (geometry._covers is not None) == finer_kept
+    np.testing.assert_array_equal(finer_frames, r.render_batch(finer.alphas).numpy())
+    assert geometry.pop_bounds_seconds() > 0.0 and geometry.pop_bounds_seconds() == 0.0
+    got = geometry.bounds(finer)
+    assert bounded == [1]   # kept, not bounded again
+    ref = hulls_within(r, -b, b)(finer.alphas)
+    for name in ("lo", "hi", "constant"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)

@@ -7,6 +7,7 @@ or from frames and bounds received for a fixed grid (:class:`_FixedGeometry`: th
 from __future__ import annotations
 
 import functools
+import time
 from typing import Callable
 
 import numpy as np
@@ -31,6 +32,7 @@ class _RendererGeometry:
         self._last = None   # the last grid bounded and its HullValues (a refinement bounds only its new segments)
         self._covers = None  # what decided the bounds of the first grid bounded (its refinement's frames from it)
         self._prepared = None  # the grid prepare() bounded
+        self._bounds_seconds = 0.0   # spent bounding inside refine() (pop_bounds_seconds)
 
     def start(self, plan: Plan) -> Plan:
         """The grid to begin with. A plan already at the grid cap leaves the refinement no room, so every
@@ -71,12 +73,33 @@ class _RendererGeometry:
     def refine(self, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
                keep: tuple[float, float] | None = None, share: float = 1.0) -> tuple[Plan, np.ndarray]:
         return refine_for_target(self.renderer, plan, frames, target, max_anchors, self.config, keep=keep, share=share,
-                                 render=self._render(plan.alphas))
+                                 render=self._render_refined)
+
+    def _render_refined(self, grid: np.ndarray, alphas: np.ndarray) -> torch.Tensor:
+        """The new poses ``alphas`` of the refined grid ``grid``: the grid is bounded first (its bounds are asked for
+        next, and kept: :meth:`bounds`), so that they are rendered from its own covers, whose segments are shorter and
+        hold fewer candidates than the coarser grid's (the same frames, bit for bit: :class:`.segment_covers.SegmentCovers`).
+        Where the refined grid's covers are not kept (beyond their memory ceiling), the coarser grid's render them, as
+        before. The time of those bounds is kept apart (:meth:`pop_bounds_seconds`)."""
+        coarser = self._render(alphas)   # (held: bounding the refined grid releases the coarser grid's covers)
+        t0 = time.perf_counter()
+        self._bounds_grid(grid)
+        self._bounds_seconds += time.perf_counter() - t0
+        covers = self._covers
+        return (covers.render_batch if covers is not None and covers.holds(alphas) else coarser)(alphas)
+
+    def pop_bounds_seconds(self) -> float:
+        """The seconds spent bounding grids inside :meth:`refine` since the last call (a certificate counts them as
+        bounds, not as rendering)."""
+        t, self._bounds_seconds = self._bounds_seconds, 0.0
+        return t
 
     def bounds(self, plan: Plan):
+        return self._bounds_grid(plan.alphas)
+
+    def _bounds_grid(self, g: np.ndarray):
         # one sweep over the plan's range bounds its grid here, the new segments of a refinement of it (the
         # bounds of a segment depend on its ends only) and, later, the frontier's finer segments
-        g = plan.alphas
         fresh = (self._last is not None and self._covers is None and self._last[0] is self._prepared
                  and not np.array_equal(self._last[0], g))
         if self._last is None or (self._last[0][0], self._last[0][-1]) != (g[0], g[-1]) or fresh:
@@ -131,6 +154,9 @@ class _FixedGeometry:
     def bounds(self, plan: Plan):
         return self._hulls
 
+    def pop_bounds_seconds(self) -> float:
+        return 0.0
+
     frontier = None
 
 
@@ -184,14 +210,14 @@ def coarse_grid(renderer: SurfelRenderer, g: np.ndarray, config: CertifyConfig) 
 
 def refine_for_target(renderer: SurfelRenderer, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
                       config: CertifyConfig, reserve: int = 0, keep: tuple[float, float] | None = None,
-                      share: float = 1.0, render: Callable[[np.ndarray], torch.Tensor] | None = None) -> tuple[Plan, np.ndarray]:
+                      share: float = 1.0, render: Callable[[np.ndarray, np.ndarray], torch.Tensor] | None = None) -> tuple[Plan, np.ndarray]:
     """The plan refined where consecutive frames differ by more than ``target / REFINE_FRACTION``
     (:func:`.anchors.refine_plan`), and its frames (only the new poses rendered). Anchors cover about 2
     target radii of rendered path each: no refinement farther than the budget reaches; the refined grid
     stays within :func:`grid_cap` less ``reserve`` points (never below the plan's own size) and adds at
     most ``share`` of the room that leaves. One round; :func:`_certify_anchored` asks for more where the
-    anchors fall short. ``render``: the new poses' frames (default the renderer's; the same frames from
-    :class:`.segment_covers.SegmentCovers` of a bounded grid holding them)."""
+    anchors fall short. ``render(grid, alphas)``: the frames of the refined grid's new poses ``alphas`` (default the
+    renderer's; the same frames from :class:`.segment_covers.SegmentCovers` of a bounded grid holding them)."""
     coarse = plan
     room = max(0, grid_cap(renderer.imaging, config) - int(reserve) - len(frames))
     plan = refine_plan(plan, frames, target / REFINE_FRACTION, len(frames) + int(share * room),
@@ -201,7 +227,8 @@ def refine_for_target(renderer: SurfelRenderer, plan: Plan, frames: np.ndarray, 
         new = np.setdiff1d(np.arange(len(plan.alphas)), old)
         full = np.empty((len(plan.alphas),) + frames.shape[1:], dtype=frames.dtype)
         full[old] = frames
-        full[new] = (render or renderer.render_batch)(plan.alphas[new]).cpu().numpy()
+        alphas = plan.alphas[new]
+        full[new] = (renderer.render_batch(alphas) if render is None else render(plan.alphas, alphas)).cpu().numpy()
         frames = full
     return plan, frames
 

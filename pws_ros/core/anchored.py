@@ -188,7 +188,9 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     t0 = time.perf_counter()
     if target > 0:
         plan, frames = geometry.refine(plan, frames, target, max_anchors, share=FIRST_ROUND_SHARE)
-    t_render += time.perf_counter() - t0
+    moved = geometry.pop_bounds_seconds()   # the refined grid bounded inside refine (anchor_geometry)
+    t_render += time.perf_counter() - t0 - moved
+    timings = dict(timings, bounds=timings.get("bounds", 0.0) + moved)
 
     # Anchors on the refined grid; where they cannot cover the requested radius at the target, the grid is
     # refined REFINE_ROUNDS - 1 rounds more (each on the frames the last one rendered; only the new segments
@@ -233,7 +235,9 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
             keep = covered_run(rule.radius(np.full(len(est_idx), target), D2, plan.alphas, centre)[1], plan.alphas, centre)
         for _ in range(REFINE_ROUNDS - 1):
             finer, finer_frames = geometry.refine(finer, finer_frames, target, max_anchors, keep=keep)
-        t_render += time.perf_counter() - t0
+        moved = geometry.pop_bounds_seconds()
+        t_render += time.perf_counter() - t0 - moved
+        timings = dict(timings, bounds=timings.get("bounds", 0.0) + moved)
         if len(finer.alphas) == len(plan.alphas):
             break
         plan, frames = finer, finer_frames
