@@ -177,15 +177,19 @@ def coarse_grid(renderer: SurfelRenderer, g: np.ndarray, config: CertifyConfig) 
     """Every ``k``-th point of the increasing grid ``g`` (``alpha = 0`` among them where ``g`` has it, both ends kept),
     to be bounded before ``g`` (:meth:`_RendererGeometry.prepare`), or None. Bounding a segment from every surfel costs
     about the same whether its footprints move a hundredth or a third of a pixel (:func:`.surfel_cover.first_covers`),
-    and deciding a segment from its parent's covers costs a fraction of it (:meth:`.segment_covers.SegmentCovers.decide`,
-    the same bounds: bit for bit along a translation, measured along a rotation), so where the median surfel moves
+    and deciding a segment from its parent's covers costs a fraction of it along a translation
+    (:meth:`.segment_covers.SegmentCovers.decide`, the same bounds bit for bit), so where the median surfel moves
     less than ``COARSE_MOTION`` px over ``k`` segments of ``g`` (from its centre at both ends of the grid, the segments
     taken as even) the grid is bounded from the covers of the coarse one. Measured on camera frames at 160x90 (tz,
-    ``k`` = 4): the TUM frame's 129 points 1.2 -> 0.9 s, Kinect's 21 0.44 -> 0.35 s; rotation grids move 0.2 px per
-    segment and are not coarsened (0.5 -> 0.6 s when forced). Only the time depends on it. None where the grid is
-    too short, or its covers would not be kept (:class:`.segment_covers.SegmentCovers`)."""
-    from .motion import project
+    ``k`` = 4): the TUM frame's 129 points 1.2 -> 0.9 s, Kinect's 21 0.44 -> 0.35 s. Only the time depends on it. None
+    along a rotation (deciding a segment from covers costs more there: four corners, two moving terms; the demo's ry
+    grids 3.38 -> 3.56 s over two frames, the RealSense one 0.5 -> 0.6 s when forced; and there the two ways are equal
+    by measurement only), where the grid is too short, or where its covers would not be kept
+    (:class:`.segment_covers.SegmentCovers`)."""
+    from .motion import TRANSLATIONS, project
 
+    if renderer.axis not in TRANSLATIONS:
+        return None
     g = np.asarray(g, dtype=np.float64)
     n, P = len(g), renderer.num_points
     HW = renderer.intr.height * renderer.intr.width
