@@ -415,7 +415,7 @@ def test_the_coarse_grid_is_every_kth_point_where_the_median_surfel_barely_moves
         im = make_imaging("surfel", CAM, (12, 16), render_factor=2, uncovered="frame")
         r = SurfelRenderer(random_cloud(rng), im, axis, alpha_range=(-b, b))
         g = np.union1d(np.linspace(-b, 0.7 * b, n), [0.0])   # alpha = 0 off the grid's middle
-        got = anchor_geometry.coarse_grid(r, g, CertifyConfig())
+        got = anchor_geometry.coarse_grid(r, g, anchor_geometry.COVERS_BYTES)
         per_segment = _median_motion(r.points_np, r.intr, axis, float(g[0]), float(g[-1])) / (len(g) - 1)
         steps = [k for k in anchor_geometry.COARSE_STEPS if len(g) >= 4 * k + 1 and k * per_segment <= anchor_geometry.COARSE_MOTION
                  and axis in ("tx", "ty", "tz")]
@@ -440,8 +440,8 @@ def _geometry_bounds(monkeypatch, r, g, coarse: bool):
     monkeypatch.setattr(anchor_geometry, "COARSE_STEPS", (4,))
     geometry = anchor_geometry._RendererGeometry(r, CertifyConfig())
     bounded = []
-    bounds = geometry.bounds
-    monkeypatch.setattr(geometry, "bounds", lambda plan: bounded.append(len(plan.alphas)) or bounds(plan))
+    bounds_grid = geometry._bounds_grid
+    monkeypatch.setattr(geometry, "_bounds_grid", lambda g_: bounded.append(len(g_)) or bounds_grid(g_))
     plan = Plan("pws_of", r.axis, float(g[-1]), float(np.diff(g).max()), len(g), g)
     geometry.prepare(plan)
     return geometry._last[1], geometry.frames(plan), bounded, geometry._covers

@@ -17,6 +17,7 @@ from .anchors import REFINE_FRACTION, refine_plan
 from .certify_common import CertifyConfig, bounds_bytes, segment_bytes
 from .coverage import frontier_reach, segment_covers
 from .imaging import HullValues, Imaging, SurfelRenderer, hulls_within
+from .motion import TRANSLATIONS, project
 from .partition import Plan
 from .segment_covers import SegmentCovers
 
@@ -41,8 +42,7 @@ class _RendererGeometry:
         n = len(plan.alphas)
         if n < max(5, grid_cap(self.renderer.imaging, self.config)):
             return plan
-        centre = int(np.searchsorted(plan.alphas, 0.0))
-        alphas = plan.alphas[np.union1d(np.arange(centre % 2, n, 2), [0, n - 1])]
+        alphas = every_kth(plan.alphas, 2)
         return Plan(plan.method, plan.axis, plan.radius, float(np.diff(alphas).max()), len(alphas), alphas, plan.unit,
                     dict(plan.details, thinned_from=n))
 
@@ -51,10 +51,9 @@ class _RendererGeometry:
         come from what bounded it (:class:`.segment_covers.SegmentCovers`). Where the footprints barely move over
         its segments, a coarser grid of some of its points is bounded before it (:func:`coarse_grid`), and its
         segments are decided from that one's covers: the same bounds, in less time."""
-        coarse = coarse_grid(self.renderer, plan.alphas, self.config)
+        coarse = coarse_grid(self.renderer, plan.alphas, self._covers_bytes())
         if coarse is not None:
-            self.bounds(Plan(plan.method, plan.axis, plan.radius, float(np.diff(coarse).max()), len(coarse), coarse,
-                             plan.unit, plan.details))
+            self._bounds_grid(coarse)
         self.bounds(plan)
         self._prepared = plan.alphas
 
@@ -63,9 +62,13 @@ class _RendererGeometry:
         covers = self._covers
         return covers.render_batch if covers is not None and covers.holds(alphas) else self.renderer.render_batch
 
+    def _covers_bytes(self) -> int:
+        """The most a grid's covers may take: a quarter of the bounds' memory ceiling, at most COVERS_BYTES."""
+        return min(COVERS_BYTES, bounds_bytes(self.config) // 4)
+
     def _new_covers(self, g: np.ndarray) -> SegmentCovers:
-        """Covers for the grid ``g``, within a quarter of the bounds' memory ceiling, at most COVERS_BYTES."""
-        return SegmentCovers(self.renderer, g, min(COVERS_BYTES, bounds_bytes(self.config) // 4))
+        """Covers for the grid ``g``, within :meth:`_covers_bytes`."""
+        return SegmentCovers(self.renderer, g, self._covers_bytes())
 
     def frames(self, plan: Plan) -> np.ndarray:
         return self._render(plan.alphas)(plan.alphas).cpu().numpy()
@@ -173,7 +176,7 @@ COARSE_MOTION = 0.3     # px the median surfel may move over a segment of the co
 COARSE_STEPS = (8, 4)   # grid points per segment of the coarse grid, the largest that keeps within COARSE_MOTION
 
 
-def coarse_grid(renderer: SurfelRenderer, g: np.ndarray, config: CertifyConfig) -> np.ndarray | None:
+def coarse_grid(renderer: SurfelRenderer, g: np.ndarray, covers_bytes: int) -> np.ndarray | None:
     """Every ``k``-th point of the increasing grid ``g`` (``alpha = 0`` among them where ``g`` has it, both ends kept),
     to be bounded before ``g`` (:meth:`_RendererGeometry.prepare`), or None. Bounding a segment from every surfel costs
     about the same whether its footprints move a hundredth or a third of a pixel (:func:`.surfel_cover.first_covers`),
@@ -184,17 +187,14 @@ def coarse_grid(renderer: SurfelRenderer, g: np.ndarray, config: CertifyConfig) 
     ``k`` = 4): the TUM frame's 129 points 1.2 -> 0.9 s, Kinect's 21 0.44 -> 0.35 s. Only the time depends on it. None
     along a rotation (deciding a segment from covers costs more there: four corners, two moving terms; the demo's ry
     grids 3.38 -> 3.56 s over two frames, the RealSense one 0.5 -> 0.6 s when forced; and there the two ways are equal
-    by measurement only), where the grid is too short, or where its covers would not be kept
+    by measurement only), where the grid is too short, or where its covers would not fit in ``covers_bytes``
     (:class:`.segment_covers.SegmentCovers`)."""
-    from .motion import TRANSLATIONS, project
-
     if renderer.axis not in TRANSLATIONS:
         return None
     g = np.asarray(g, dtype=np.float64)
     n, P = len(g), renderer.num_points
-    HW = renderer.intr.height * renderer.intr.width
     steps = [k for k in COARSE_STEPS if n >= 4 * k + 1]
-    if P == 0 or not steps or 4 * (n - 1) * HW > min(COVERS_BYTES, bounds_bytes(config) // 4):
+    if P == 0 or not steps or SegmentCovers.first_bytes(renderer, n - 1) > covers_bytes:
         return None
     pts = renderer.points_np
     u0, v0, _ = project(pts, renderer.intr, renderer.axis, float(g[0]))
@@ -207,9 +207,16 @@ def coarse_grid(renderer: SurfelRenderer, g: np.ndarray, config: CertifyConfig) 
     per_segment = float(np.median(move)) / (n - 1)
     for k in steps:
         if k * per_segment <= COARSE_MOTION:
-            centre = int(np.searchsorted(g, 0.0))
-            return g[np.union1d(np.arange(centre % k, n, k), [0, n - 1])]
+            return every_kth(g, k)
     return None
+
+
+def every_kth(g: np.ndarray, k: int) -> np.ndarray:
+    """Every ``k``-th point of the increasing grid ``g``, counted from ``alpha = 0`` (where ``g`` holds it), both ends
+    kept."""
+    n = len(g)
+    centre = int(np.searchsorted(g, 0.0))
+    return g[np.union1d(np.arange(centre % k, n, k), [0, n - 1])]
 
 
 def refine_for_target(renderer: SurfelRenderer, plan: Plan, frames: np.ndarray, target: float, max_anchors: int,
@@ -267,4 +274,5 @@ def refined_hulls(bounds_of, old_grid: np.ndarray, old, grid: np.ndarray, covers
     return values
 
 
-__all__ = ["COARSE_MOTION", "COARSE_STEPS", "COVERS_BYTES", "coarse_grid", "grid_cap", "refine_for_target", "refined_hulls"]
+__all__ = ["COARSE_MOTION", "COARSE_STEPS", "COVERS_BYTES", "coarse_grid", "every_kth", "grid_cap", "refine_for_target",
+           "refined_hulls"]

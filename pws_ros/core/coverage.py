@@ -31,7 +31,6 @@ anchors any rule with given radii needs.
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass
 from typing import Callable
 

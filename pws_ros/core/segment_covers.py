@@ -46,12 +46,18 @@ class SegmentCovers:
         self.grid = np.asarray(grid, dtype=np.float64)
         self.max_bytes = int(max_bytes)
         S, HW = len(self.grid) - 1, renderer.intr.height * renderer.intr.width
-        self.used = 4 * S * HW     # bytes held: 4 per segment and native pixel, 16 per candidate
+        self.used = self.first_bytes(renderer, S)     # bytes held: 4 per segment and native pixel, 16 per candidate
         self.dropped = self.used > self.max_bytes   # nothing kept (the renderer renders then)
         self.first = None if self.dropped else torch.empty((S, HW), dtype=torch.int32, device=renderer.device)
         self._parts: list[tuple[torch.Tensor, torch.Tensor]] = []
         self.where = self.point = self.starts = None
         self.values = None   # the bounds these covers decided (a HullValues of the grid, given to close)
+
+    @staticmethod
+    def first_bytes(renderer: SurfelRenderer, segments: int) -> int:
+        """What the first surely covering ranks of ``segments`` segments take (int32 per segment and native pixel): the
+        least the covers of a grid of that many segments hold."""
+        return 4 * int(segments) * renderer.intr.height * renderer.intr.width
 
     def add(self, s: int, sure_first: torch.Tensor, q: torch.Tensor, cp: torch.Tensor) -> None:
         """Segments ``s ..``: ``sure_first`` (B H W,) ranks, candidates ``(q, cp)`` with ``q`` counted from segment ``s``."""
