@@ -3,6 +3,8 @@ core's certify() directly, the four-process path (messages + assembler) against 
 per-axis error isolation, camera rescaling to the model's input size and the CUDA fallback."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -473,3 +475,65 @@ def test_batch_size_check_uses_the_faster_small_batch_once_and_certificates_stay
         for a, b in zip(certs[0], other):
             assert a.status != "error" and (a.status, a.label, a.radius, a.p_a_lower, a.n, a.classifier_calls) == \
                    (b.status, b.label, b.radius, b.p_a_lower, b.n, b.classifier_calls)
+
+
+def _without_timings(certs) -> list[str]:
+    """Every field of the certificates but what was timed (``timings``, any ``*seconds`` entry)."""
+    def strip(x):
+        if isinstance(x, dict):
+            return {k: strip(v) for k, v in x.items() if k != "timings" and not k.endswith("seconds")}
+        return [strip(v) for v in x] if isinstance(x, list) else x
+    return [json.dumps(strip(c.to_dict()), sort_keys=True, default=str) for c in certs]
+
+
+def test_axes_at_the_same_time_give_the_frame_of_one_after_another(model_path, small_camera):
+    """axis_threads: the certificates (every field but the timings, the self-audits included), plans and previews of
+    a frame whose axes run at the same time are those of one axis after another, in config order."""
+    cloud = scene(small_camera)
+    params = dict(axes=["tz", "ry", "tx"], audit_every=1, audit_poses=3, **{"radius.tx": 0.02})
+    one, _ = make_engine(model_path, axis_threads=1, **params)
+    many, _ = make_engine(model_path, axis_threads=3, **params)
+    assert one.axis_workers() == 1 and many.axis_workers() == 3
+    a = one.process(cloud, small_camera, 7, preview_every=3)
+    b = many.process(cloud, small_camera, 7, preview_every=3)
+    assert [c.axis for c in b.certificates] == ["tz", "ry", "tx"]
+    assert all(c.status != "error" and c.bounds["audit"]["violations"] == 0 for c in b.certificates)
+    assert _without_timings(a.certificates) == _without_timings(b.certificates)
+    assert {k: p.alphas.tolist() for k, p in a.plans.items()} == {k: p.alphas.tolist() for k, p in b.plans.items()}
+    assert [(ax, i) for ax, i, _ in a.previews] == [(ax, i) for ax, i, _ in b.previews] and a.previews
+    for (_, _, x), (_, _, y) in zip(a.previews, b.previews):
+        np.testing.assert_array_equal(x, y)
+    assert set(b.compute_ms) == {"tz", "ry", "tx"} and b.timings["total"] > 0
+
+
+def test_axis_threads_run_the_axes_at_the_same_time(model_path, small_camera, monkeypatch):
+    import threading
+
+    eng, _ = make_engine(model_path, axes=["tz", "ry"], axis_threads=2)
+    meet = threading.Barrier(2, timeout=20)   # one axis after another never meets: BrokenBarrierError
+    certify_axis = eng.certify_axis
+
+    def meeting(*args, **kwargs):
+        meet.wait()
+        return certify_axis(*args, **kwargs)
+
+    monkeypatch.setattr(eng, "certify_axis", meeting)
+    res = eng.process(scene(small_camera), small_camera, 1)
+    assert [c.axis for c in res.certificates] == ["tz", "ry"] and all(c.status != "error" for c in res.certificates)
+    # shutting down: every axis not begun is an ERROR that says so
+    stopped = eng.process(scene(small_camera), small_camera, 2, should_stop=lambda: True)
+    assert [c.status for c in stopped.certificates] == ["error", "error"]
+    assert all(c.reason == "shutting down" for c in stopped.certificates)
+
+
+def test_how_many_axes_run_at_once(model_path, monkeypatch):
+    auto, _ = make_engine(model_path, axes=["tz", "ry", "tx"])
+    assert auto.config.axis_threads == 0
+    for threads, expected in ((1, 1), (2, 2), (8, 3)):   # one per axis, at most torch's intra-op threads
+        monkeypatch.setattr(torch, "get_num_threads", lambda t=threads: t)
+        assert auto.axis_workers() == expected
+    assert auto.axis_workers(budgeted=True) == 1          # a time budget shares the frame's time in turn
+    two, _ = make_engine(model_path, axes=["tz", "ry", "tx"], axis_threads=2)
+    assert two.axis_workers() == 2
+    single, _ = make_engine(model_path, axes=["tz"], axis_threads=4)
+    assert single.axis_workers() == 1

@@ -2,7 +2,7 @@
 
 Run: the never-changing classifier (``pws ceiling --no-model``: the classifier costs nothing, so an axis'
 time is its imaging and placement) on the first frames of each recording, one warm-up frame first (the
-start is not charged), one torch thread by default; per certificate the seconds of each stage and the
+start is not charged), one torch thread by default, the axes one after another (``axis_threads`` 1); per certificate the seconds of each stage and the
 whole certificate (every field but its timings) go to ``--out``:
 
     python3 -m pws_ros.bench.geometry --recording rs=../shared/data/realsense_single_rgbd --out now.json
@@ -38,9 +38,12 @@ def measure(recordings: list[tuple[str, str]], size: tuple[int, int], frames: in
     from pws_ros.replay import ReplayOptions
     from pws_ros.replay.ceiling import ceiling
 
+    config = config or PwsConfig()
+    if hasattr(config, "axis_threads"):   # each axis alone, as it would run on its own (an older checkout has no such key)
+        config = config.with_params({"axis_threads": 1})
     rows = []
     for name, path in recordings:
-        opts = ReplayOptions(bag=Path(path), config=config or PwsConfig(), write_output=False, quiet=True,
+        opts = ReplayOptions(bag=Path(path), config=config, write_output=False, quiet=True,
                              max_frames=int(frames))
         ceiling(replace(opts, max_frames=1), None, input_size=size)   # warm-up: lazy imports, first allocations
         _, top, _ = ceiling(opts, None, input_size=size)

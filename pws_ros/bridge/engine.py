@@ -17,7 +17,9 @@ Risk and noise: the frame's statement (every axis together) holds with probabili
 (seed, stamp, axis) (:func:`~pws_ros.core.smoothing.derive_seed`). The model (and denoiser, and the dense cloud of method ``pws``) is
 loaded once. A ``cuda:N`` device that is not available falls back to the CPU with a warning sent to
 ``log``. Any failure of one axis becomes an ERROR certificate for that axis (never an exception):
-one bad axis or frame never stops a node.
+one bad axis or frame never stops a node. The axes of a frame run at the same time, each in a thread of its own,
+where ``axis_threads`` and the cores allow (:meth:`FrameCertifier.axis_workers`; one after another with a time
+budget): each has its own renderer, plan and seed, so its certificate is the same either way.
 
 The decisions on how much work a frame gets (the batch size of classifier calls, the time budget's
 warm-ups, sizes and coarser geometry) are :mod:`pws_ros.bridge.sizing`'s (``FrameCertifier.budget``).
@@ -28,6 +30,7 @@ import math
 import threading
 import time
 import traceback
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -203,7 +206,8 @@ class FrameCertifier:
             fit = grid_cap(im, self.certify_config())
             self.log("info", f"{im.describe()}; memory per axis: frames and bounds of at most {fit} segments x "
                              f"{segment_bytes(im) / 2**20:.2f} MiB = {fit * segment_bytes(im) / 2**20:.0f} MiB "
-                             f"(max_memory_mb {c.max_memory_mb:g}), the renderer streams in chunks")
+                             f"(max_memory_mb {c.max_memory_mb:g}), the renderer streams in chunks"
+                             + (f"; {self.axis_workers()} axes at once (axis_threads)" if self.axis_workers() > 1 and not self.budget.on else ""))
             for text in size_advice(im, self.batch_size):
                 self.log("warn", text)
         return im
@@ -229,6 +233,19 @@ class FrameCertifier:
             cfg = replace(cfg, frontier_rounds=int(sizes.frontier_rounds),
                           render_factor=COARSE_FACTOR if sizes.coarse else cfg.render_factor)
         return cfg
+
+    def axis_workers(self, budgeted: bool = False) -> int:
+        """How many of a frame's axes :meth:`process` certifies at the same time (``axis_threads``; 0: one per axis, at
+        most torch's intra-op threads); one with a time budget (its axes share the frame's time in turn) or one axis."""
+        n = len(self.config.axes)
+        if budgeted or n < 2:
+            return 1
+        k = int(self.config.axis_threads)
+        if k == 0:
+            import torch
+
+            k = torch.get_num_threads()
+        return max(1, min(n, k))
 
     def _stamp(self, cert: Certificate) -> Certificate:
         cert.frame_alpha = float(self.config.alpha)
@@ -418,11 +435,12 @@ class FrameCertifier:
     def process(self, cloud: Cloud, intr: CameraIntrinsics, stamp_ns: int, dense_cloud: Cloud | None = None, *,
                 frame_id: str = "", preview_every: int = 0,
                 should_stop: Callable[[], bool] | None = None) -> FrameResult:
-        """Plan, render and certify every configured axis of one frame (in config order).
+        """Plan, render and certify every configured axis of one frame (results in config order; the axes at the same
+        time where :meth:`axis_workers` says so, else one after another).
 
         ``preview_every`` > 0 keeps every k-th rendered frame (and the alpha = 0 frame) as uint8 RGB
-        in ``FrameResult.previews``. ``should_stop`` is polled between axes (shutdown): the
-        remaining axes become ERROR certificates.
+        in ``FrameResult.previews``. ``should_stop`` is polled as each axis begins (shutdown): the
+        axes not begun become ERROR certificates.
         """
         t0 = time.perf_counter()
         certs: list[Certificate] = []
@@ -445,35 +463,47 @@ class FrameCertifier:
                 coarse.append(self.imaging_for(intr, cloud, render_factor=COARSE_FACTOR))
             return coarse[0]
 
-        share = 0.0
         if budgeted:
             startup += self.budget.ready(cloud, imaging, dense_cloud, coarse_imaging)
+
+        def one(k: int, axis: str) -> tuple[Certificate, list, float]:
+            """The ``k``-th axis: its certificate (audited where due), its previews and its seconds."""
+            t1 = time.perf_counter()
+            share = 0.0
+            if budgeted:   # of what is left of the frame's budget: an axis that took less leaves it to the next
+                share = self.budget.share(t1 - t0 - startup, len(self.config.axes) - k)
+            if should_stop is not None and should_stop():
+                return self.error_for(axis, "shutting down"), [], time.perf_counter() - t1
+            sizes = self.budget.size(share, imaging) if budgeted and self.budget.costs.ready else None
+            used = imaging
+            if sizes is not None and sizes.coarse:
+                try:
+                    used = coarse_imaging()
+                except PwsError:   # cannot happen where the coarse level was measured; the configured imaging then
+                    sizes = self.budget.size(share, imaging, coarse_ok=False)
+            mine: list[tuple[str, int, np.ndarray]] = []
+            cert = self.certify_axis(cloud, used, axis, dense_cloud, preview_every, mine, plans,
+                                     stamp_ns=int(stamp_ns), sizes=sizes)
+            cert.filled_points = filled_drawn(cloud, used)   # the statement is about the cloud with filled depth
+            if sizes is not None:
+                self.budget.record(cert, sizes, time.perf_counter() - t1, used)
+            if audit and cert.status != "error" and axis in plans:
+                audit_certificate(cert, self.source_cloud(cloud, dense_cloud), used, plans[axis], device=self.device,
+                                  num_anchors=self.config.num_anchors, audit_poses=self.config.audit_poses, log=self.log)
+            return cert, mine, time.perf_counter() - t1
+
         if imaging is not None:
-            for k, axis in enumerate(self.config.axes):
-                t1 = time.perf_counter()
-                if budgeted:   # of what is left of the frame's budget: an axis that took less leaves it to the next
-                    share = self.budget.share(t1 - t0 - startup, len(self.config.axes) - k)
-                if should_stop is not None and should_stop():
-                    certs.append(self.error_for(axis, "shutting down"))
-                    timings[axis] = time.perf_counter() - t1
-                    continue
-                sizes = self.budget.size(share, imaging) if budgeted and self.budget.costs.ready else None
-                used = imaging
-                if sizes is not None and sizes.coarse:
-                    try:
-                        used = coarse_imaging()
-                    except PwsError:   # cannot happen where the coarse level was measured; the configured imaging then
-                        sizes = self.budget.size(share, imaging, coarse_ok=False)
-                cert = self.certify_axis(cloud, used, axis, dense_cloud, preview_every, previews, plans,
-                                         stamp_ns=int(stamp_ns), sizes=sizes)
-                cert.filled_points = filled_drawn(cloud, used)   # the statement is about the cloud with filled depth
-                if sizes is not None:
-                    self.budget.record(cert, sizes, time.perf_counter() - t1, used)
-                if audit and cert.status != "error" and axis in plans:
-                    audit_certificate(cert, self.source_cloud(cloud, dense_cloud), used, plans[axis], device=self.device,
-                                      num_anchors=self.config.num_anchors, audit_poses=self.config.audit_poses, log=self.log)
+            axes = list(self.config.axes)
+            workers = self.axis_workers(budgeted)
+            if workers > 1:   # the axes at the same time (axis_threads): each its own renderer, plan and noise seed
+                with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="pws-axis") as pool:
+                    done = list(pool.map(one, range(len(axes)), axes))
+            else:
+                done = [one(k, axis) for k, axis in enumerate(axes)]
+            for axis, (cert, mine, seconds) in zip(axes, done):   # in config order either way
                 certs.append(cert)
-                timings[axis] = time.perf_counter() - t1
+                previews.extend(mine)
+                timings[axis] = seconds
         if startup > 0:
             timings["startup"] = startup   # warm-ups and the batch size check: not the frame's work (nor in "total")
         timings["total"] = time.perf_counter() - t0 - startup

@@ -169,6 +169,11 @@ PARAMS: tuple[ParamSpec, ...] = (
               "finishes within its share; a frame that needs more gets a smaller radius, never more time; where even the least "
               "work does not fit, the geometry is coarsened (render factor 1, fewer frontier rounds) and the axis still answers, "
               "flagged over budget with the time it took; start-up work is not charged to a frame; 0 = off (the configured sizes)", range=(0.0, 86400.0), nodes=("pipeline",), unit="s"),
+    ParamSpec("axis_threads", 0, "axes of a frame certified at the same time, each in a thread of its own (the pipeline: "
+              "a frame's latency; each axis keeps its own renderer and noise seed, so the certificates are the same as one "
+              "after another, and memory is up to this many times max_memory_mb); 0 = automatic: one per axis, at most "
+              "torch's intra-op threads (the cores, or fewer per worker with several workers), one with a time budget "
+              "(its axes share the frame's time in turn); 1 = one after another", range=(0, 64), nodes=("pipeline",)),
     ParamSpec("audit_every", 0, "self-audit every k-th frame: re-render poses inside every segment of each certified axis "
               "(audit_poses per segment) and check every bound the certificate used; a violation turns that axis to "
               "ERROR; 0 = off", range=(0, 1_000_000), nodes=_CERT),

@@ -219,7 +219,8 @@ def format_table(summary: dict[str, Any]) -> str:
     if t.get("wall_s") and t.get("recording_span_s"):
         speed = f", {t['recording_span_s'] / t['wall_s']:.2f}x real time"
     lines.append(f"time: {_num(t.get('wall_s'), '.1f')} s wall for {_num(t.get('recording_span_s'), '.1f')} s of recording{speed}; "
-                 f"{_num(t.get('per_certificate_ms_mean'), '.0f')} ms per certificate (mean)")
+                 f"{_num(t.get('per_frame_ms_mean'), '.0f')} ms per frame, {_num(t.get('per_certificate_ms_mean'), '.0f')} ms per "
+                 "certificate (means; a frame's axes may run at the same time: axis_threads)")
     b = summary.get("time_budget")
     if b:
         lines.append(f"time budget {b['frame_budget_s']:g} s per frame: longest frame {_num(b['longest_frame_s'], '.1f')} s, "
