@@ -26,6 +26,8 @@ warm-ups, sizes and coarser geometry) are :mod:`pws_ros.bridge.sizing`'s (``Fram
 """
 from __future__ import annotations
 
+import functools
+import importlib
 import math
 import threading
 import time
@@ -49,6 +51,15 @@ from .selfaudit import audit_certificate
 from .assembly import AssembledFrame
 from .budget import Sizes
 from .sizing import COARSE_FACTOR, FrameBudget, LogFn, size_advice
+
+
+@functools.lru_cache(maxsize=1)
+def _axis_imports() -> None:
+    """What an axis imports when first used, imported here once before axes run in threads of their own (a module
+    that two threads import first waits for one of them; modules importing each other from two threads could
+    deadlock)."""
+    for name in ("anchors", "audit", "bounds", "certify", "cms", "coverage", "imaging", "render"):
+        importlib.import_module(f"..core.{name}", __package__)
 
 
 def _default_log(level: str, message: str) -> None:
@@ -496,6 +507,7 @@ class FrameCertifier:
             axes = list(self.config.axes)
             workers = self.axis_workers(budgeted)
             if workers > 1:   # the axes at the same time (axis_threads): each its own renderer, plan and noise seed
+                _axis_imports()
                 with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="pws-axis") as pool:
                     done = list(pool.map(one, range(len(axes)), axes))
             else:
