@@ -45,7 +45,7 @@ setup(
     tests_require=["pytest"],
     entry_points={
         "console_scripts": [
-            "pws = pws_ros.cli:main",
+            "pws = pws_ros.cli:run",
             "cloud_listener = pws_ros.nodes.cloud_listener:main",
             "partition_planner = pws_ros.nodes.partition_planner:main",
             "projector = pws_ros.nodes.projector:main",

@@ -87,5 +87,22 @@ def main(argv: list[str] | None = None) -> int:
         return 141
 
 
+def run() -> None:
+    """The ``pws`` executable: :func:`main`, then the exit with its status. A frame that a signal left while its axes
+    ran in threads of their own (:func:`pws_ros.bridge.engine.axes_still_running`) may still be inside torch, and the
+    interpreter's teardown would abort under it ("terminate called without an active exception": SIGABRT instead of
+    130 or 143), so the process then ends without that teardown, its output already closed and stdio flushed (as a
+    node's process ends: ``pws_ros.nodes._ros``)."""
+    code = main()
+    engine = sys.modules.get(f"{__package__}.bridge.engine")
+    if engine is not None and engine.axes_still_running():
+        import os
+
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run()

@@ -537,3 +537,64 @@ def test_how_many_axes_run_at_once(model_path, monkeypatch):
     assert two.axis_workers() == 2
     single, _ = make_engine(model_path, axes=["tz"], axis_threads=4)
     assert single.axis_workers() == 1
+
+
+def test_a_signal_leaves_a_frame_whose_axes_run_at_once_without_waiting_for_them(model_path, small_camera, monkeypatch):
+    """``pws replay`` stops on SIGINT / SIGTERM by an exception raised in the main thread: with the axes in threads of
+    their own it is raised at once (an interruptible wait), not when the axes end, and they never hold up an exit."""
+    import signal
+    import threading
+    import time
+
+    class Stop(Exception):
+        pass
+
+    eng, _ = make_engine(model_path, axes=["tz", "ry"], axis_threads=2)
+    release = threading.Event()
+
+    def long_axis(cloud, imaging, axis, *args, **kwargs):
+        release.wait(60)   # an axis of a large model
+        return eng.error_for(axis, "released")
+
+    monkeypatch.setattr(eng, "certify_axis", long_axis)
+
+    def stop(signum, frame):
+        raise Stop()
+
+    previous = signal.signal(signal.SIGUSR1, stop)
+    main = threading.main_thread().ident
+    timer = threading.Timer(0.5, lambda: signal.pthread_kill(main, signal.SIGUSR1))
+    try:
+        t0 = time.perf_counter()
+        timer.start()
+        with pytest.raises(Stop):
+            eng.process(scene(small_camera), small_camera, 1)
+        assert time.perf_counter() - t0 < 20   # not the axes' 60 s
+        assert all(t.daemon for t in threading.enumerate() if t.name.startswith("pws-axis"))
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
+        release.set()
+        timer.cancel()
+
+
+def test_at_once_keeps_the_order_and_raises_what_an_item_raised():
+    import threading
+
+    from pws_ros.bridge.engine import _at_once
+
+    seen = []
+
+    def square(k):
+        seen.append(threading.current_thread().name)
+        return k * k
+
+    assert _at_once(square, 5, 2) == [0, 1, 4, 9, 16]
+    assert len(set(seen)) <= 2 and all(name.startswith("pws-axis") for name in seen)
+
+    def third_fails(k):
+        if k == 2:
+            raise ValueError("item 2")
+        return k
+
+    with pytest.raises(ValueError, match="item 2"):
+        _at_once(third_fails, 4, 3)

@@ -155,3 +155,54 @@ def test_signals_wait_for_the_end_of_a_section():
             time.sleep(0.5)
         assert info2.value.exit_code == 130 and stop2.signame == "SIGINT"
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before  # handlers restored
+
+
+def test_sigterm_while_a_frames_axes_run_at_once_exits_143_with_the_bag_closed(tmp_path):
+    """With the axes of a frame in threads of their own (``axis_threads``), SIGTERM mid-frame still exits with 143 at once,
+    the bag closed: the axes still inside torch do not abort the exit (``pws_ros.cli.run``)."""
+    out = tmp_path / "out"
+    conf = tmp_path / "threads.yaml"
+    conf.write_text("pipeline:\n  ros__parameters:\n    axis_threads: 2\n")
+    # the shipped model and sizes (about 2-3 s a frame): the signal comes while both axes are inside torch
+    cmd = [sys.executable, "-m", "pws_ros.cli", "replay", str(DEMO), "--out", str(out), "--config", str(conf),
+           "--progress-interval", "0", "--json"]
+    proc = subprocess.Popen(cmd, cwd=tmp_path, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    err_lines: list[str] = []
+    first_frame = threading.Event()
+
+    def read_stderr():
+        for line in proc.stderr:
+            err_lines.append(line)
+            if "pws replay: 1/8 frames" in line:
+                first_frame.set()
+
+    out_chunks: list[str] = []
+    reader = threading.Thread(target=read_stderr, daemon=True)
+    reader.start()
+    out_reader = threading.Thread(target=lambda: out_chunks.append(proc.stdout.read()), daemon=True)
+    out_reader.start()
+    try:
+        assert first_frame.wait(120), "no frame finished within 120 s:\n" + "".join(err_lines)
+        time.sleep(1.0)   # the second frame's axes under way
+        assert proc.poll() is None, "the replay ended before it could be interrupted"
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=60)
+        took = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    reader.join(10)
+    out_reader.join(10)
+    stderr = "".join(err_lines)
+    assert proc.returncode == 143, stderr
+    assert "terminate called" not in stderr and "stopped by SIGTERM after" in stderr
+    summary = json.loads("".join(out_chunks))
+    done = summary["frames"]["processed"]
+    assert summary["exit_code"] == 143 and 1 <= done < 8
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([out]) as r:
+        conns = [c for c in r.connections if c.topic == "/certification"]
+        assert sum(1 for _ in r.messages(connections=conns)) == done
+    assert took < 30, f"the exit took {took:.1f} s"

@@ -32,7 +32,6 @@ import math
 import threading
 import time
 import traceback
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -60,6 +59,46 @@ def _axis_imports() -> None:
     deadlock)."""
     for name in ("anchors", "audit", "bounds", "certify", "cms", "coverage", "imaging", "render"):
         importlib.import_module(f"..core.{name}", __package__)
+
+
+AXIS_THREAD = "pws-axis-"   # the name of the threads of a frame's axes (_at_once), then a number
+
+
+def axes_still_running() -> list[str]:
+    """The axis threads still running (a frame that a signal left while its axes ran at the same time)."""
+    return sorted(t.name for t in threading.enumerate() if t.name.startswith(AXIS_THREAD) and t.is_alive())
+
+
+def _at_once(fn: Callable[[int], Any], n: int, workers: int) -> list:
+    """``[fn(0), ..., fn(n - 1)]``, computed by ``workers`` daemon threads (each takes the next ``k`` when it is free);
+    the first exception of any is raised here once all have ended. Daemon threads and an interruptible wait: a signal
+    that stops the caller (``pws replay``'s SIGINT or SIGTERM) is raised here at once, and what is left of the frame
+    never holds up the process' exit (a pool's threads are joined at exit)."""
+    results: list = [None] * n
+    errors: list = [None] * n
+    todo = iter(range(n))
+    lock = threading.Lock()
+
+    def work() -> None:
+        while True:
+            with lock:
+                k = next(todo, None)
+            if k is None:
+                return
+            try:
+                results[k] = fn(k)
+            except BaseException as exc:  # noqa: BLE001 - raised in the caller's thread below
+                errors[k] = exc
+
+    threads = [threading.Thread(target=work, name=f"{AXIS_THREAD}{i}", daemon=True) for i in range(max(1, min(n, workers)))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for exc in errors:
+        if exc is not None:
+            raise exc
+    return results
 
 
 def _default_log(level: str, message: str) -> None:
@@ -508,8 +547,7 @@ class FrameCertifier:
             workers = self.axis_workers(budgeted)
             if workers > 1:   # the axes at the same time (axis_threads): each its own renderer, plan and noise seed
                 _axis_imports()
-                with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="pws-axis") as pool:
-                    done = list(pool.map(one, range(len(axes)), axes))
+                done = _at_once(lambda k: one(k, axes[k]), len(axes), workers)
             else:
                 done = [one(k, axis) for k, axis in enumerate(axes)]
             for axis, (cert, mine, seconds) in zip(axes, done):   # in config order either way
@@ -523,4 +561,4 @@ class FrameCertifier:
                            imaging.camera if imaging is not None else None, timings, previews, imaging)
 
 
-__all__ = ["FrameCertifier", "FrameResult", "LogFn", "resolve_device_with_fallback"]
+__all__ = ["AXIS_THREAD", "FrameCertifier", "FrameResult", "LogFn", "axes_still_running", "resolve_device_with_fallback"]
