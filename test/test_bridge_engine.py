@@ -578,9 +578,10 @@ def test_a_signal_leaves_a_frame_whose_axes_run_at_once_without_waiting_for_them
 
 
 def test_at_once_keeps_the_order_and_raises_what_an_item_raised():
+    """pws_ros.bridge.axis_threads.at_once: results in order whatever thread computed them, the first error raised."""
     import threading
 
-    from pws_ros.bridge.engine import _at_once
+    from pws_ros.bridge.axis_threads import at_once
 
     seen = []
 
@@ -588,7 +589,7 @@ def test_at_once_keeps_the_order_and_raises_what_an_item_raised():
         seen.append(threading.current_thread().name)
         return k * k
 
-    assert _at_once(square, 5, 2) == [0, 1, 4, 9, 16]
+    assert at_once(square, 5, 2) == [0, 1, 4, 9, 16]
     assert len(set(seen)) <= 2 and all(name.startswith("pws-axis") for name in seen)
 
     def third_fails(k):
@@ -597,4 +598,4 @@ def test_at_once_keeps_the_order_and_raises_what_an_item_raised():
         return k
 
     with pytest.raises(ValueError, match="item 2"):
-        _at_once(third_fails, 4, 3)
+        at_once(third_fails, 4, 3)

@@ -19,6 +19,7 @@ field names, so the same code converts a live message in a node and a recorded o
 - :mod:`.inputs`      the camera-input front end of cloud_listener/pipeline (and pws replay)
 - :mod:`.scheme`      the wire scheme of the four-process mode (plans, frames, bounds on topics)
 - :mod:`.engine`      ``FrameCertifier``: the per-frame pipeline (plan, render, certify every axis)
+- :mod:`.axis_threads` a frame's axes at the same time (``axis_threads``): how many, and the threads that run them
 - :mod:`.selfaudit`   the self-audit of a certificate (``audit_every``)
 - :mod:`.preview`     preview frames for humans (``rendered/preview``)
 - :mod:`.outputs`     one frame's outputs in publication order (the nodes publish them, replay writes them)

@@ -18,7 +18,7 @@ Risk and noise: the frame's statement (every axis together) holds with probabili
 loaded once. A ``cuda:N`` device that is not available falls back to the CPU with a warning sent to
 ``log``. Any failure of one axis becomes an ERROR certificate for that axis (never an exception):
 one bad axis or frame never stops a node. The axes of a frame run at the same time, each in a thread of its own,
-where ``axis_threads`` and the cores allow (:meth:`FrameCertifier.axis_workers`; one after another with a time
+where ``axis_threads`` and the cores allow (:mod:`.axis_threads`; one after another with a time
 budget): each has its own renderer, plan and seed, so its certificate is the same either way.
 
 The decisions on how much work a frame gets (the batch size of classifier calls, the time budget's
@@ -26,8 +26,6 @@ warm-ups, sizes and coarser geometry) are :mod:`pws_ros.bridge.sizing`'s (``Fram
 """
 from __future__ import annotations
 
-import functools
-import importlib
 import math
 import threading
 import time
@@ -48,57 +46,9 @@ from .preview import render_previews
 from .scheme import PlanBundle, rendered_plan_from_parts
 from .selfaudit import audit_certificate
 from .assembly import AssembledFrame
+from .axis_threads import at_once, axis_imports, axis_workers
 from .budget import Sizes
 from .sizing import COARSE_FACTOR, FrameBudget, LogFn, size_advice
-
-
-@functools.lru_cache(maxsize=1)
-def _axis_imports() -> None:
-    """What an axis imports when first used, imported here once before axes run in threads of their own (a module
-    that two threads import first waits for one of them; modules importing each other from two threads could
-    deadlock)."""
-    for name in ("anchors", "audit", "bounds", "certify", "cms", "coverage", "imaging", "render"):
-        importlib.import_module(f"..core.{name}", __package__)
-
-
-AXIS_THREAD = "pws-axis-"   # the name of the threads of a frame's axes (_at_once), then a number
-
-
-def axes_still_running() -> list[str]:
-    """The axis threads still running (a frame that a signal left while its axes ran at the same time)."""
-    return sorted(t.name for t in threading.enumerate() if t.name.startswith(AXIS_THREAD) and t.is_alive())
-
-
-def _at_once(fn: Callable[[int], Any], n: int, workers: int) -> list:
-    """``[fn(0), ..., fn(n - 1)]``, computed by ``workers`` daemon threads (each takes the next ``k`` when it is free);
-    the first exception of any is raised here once all have ended. Daemon threads and an interruptible wait: a signal
-    that stops the caller (``pws replay``'s SIGINT or SIGTERM) is raised here at once, and what is left of the frame
-    never holds up the process' exit (a pool's threads are joined at exit)."""
-    results: list = [None] * n
-    errors: list = [None] * n
-    todo = iter(range(n))
-    lock = threading.Lock()
-
-    def work() -> None:
-        while True:
-            with lock:
-                k = next(todo, None)
-            if k is None:
-                return
-            try:
-                results[k] = fn(k)
-            except BaseException as exc:  # noqa: BLE001 - raised in the caller's thread below
-                errors[k] = exc
-
-    threads = [threading.Thread(target=work, name=f"{AXIS_THREAD}{i}", daemon=True) for i in range(max(1, min(n, workers)))]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    for exc in errors:
-        if exc is not None:
-            raise exc
-    return results
 
 
 def _default_log(level: str, message: str) -> None:
@@ -285,17 +235,8 @@ class FrameCertifier:
         return cfg
 
     def axis_workers(self, budgeted: bool = False) -> int:
-        """How many of a frame's axes :meth:`process` certifies at the same time (``axis_threads``; 0: one per axis, at
-        most torch's intra-op threads); one with a time budget (its axes share the frame's time in turn) or one axis."""
-        n = len(self.config.axes)
-        if budgeted or n < 2:
-            return 1
-        k = int(self.config.axis_threads)
-        if k == 0:
-            import torch
-
-            k = torch.get_num_threads()
-        return max(1, min(n, k))
+        """How many of a frame's axes :meth:`process` certifies at the same time (:func:`.axis_threads.axis_workers`)."""
+        return axis_workers(len(self.config.axes), int(self.config.axis_threads), budgeted)
 
     def _stamp(self, cert: Certificate) -> Certificate:
         cert.frame_alpha = float(self.config.alpha)
@@ -546,8 +487,8 @@ class FrameCertifier:
             axes = list(self.config.axes)
             workers = self.axis_workers(budgeted)
             if workers > 1:   # the axes at the same time (axis_threads): each its own renderer, plan and noise seed
-                _axis_imports()
-                done = _at_once(lambda k: one(k, axes[k]), len(axes), workers)
+                axis_imports()
+                done = at_once(lambda k: one(k, axes[k]), len(axes), workers)
             else:
                 done = [one(k, axis) for k, axis in enumerate(axes)]
             for axis, (cert, mine, seconds) in zip(axes, done):   # in config order either way
@@ -561,4 +502,4 @@ class FrameCertifier:
                            imaging.camera if imaging is not None else None, timings, previews, imaging)
 
 
-__all__ = ["AXIS_THREAD", "FrameCertifier", "FrameResult", "LogFn", "axes_still_running", "resolve_device_with_fallback"]
+__all__ = ["FrameCertifier", "FrameResult", "LogFn", "resolve_device_with_fallback"]
