@@ -89,3 +89,18 @@ def test_live_certificate_values_leave_out_timings_and_worker(tmp_path):
             T.DiagnosticStatus(level=0, name="pws/tz", message="m", hardware_id="cam", values=values)]))
     a, b = (certificate_values(s) for s in statuses)
     assert a == b and set(a["tz"]) == set(CERT_COMPARED)
+
+
+def test_budget_zero_skips_the_budget_comparison(setup, tmp_path, capsys):
+    """--budget 0: the workers alone (it crashed with a KeyError); a negative budget is refused by name."""
+    import yaml
+
+    bag, cfg = setup
+    conf = tmp_path / "c.yaml"
+    conf.write_text(yaml.safe_dump({"pipeline": {"ros__parameters": {"model_path": cfg.model_path, "axes": ["tz"],
+                                                                     "radius.tz": 0.002, "n0": 16, "n": 32}}}))
+    assert TP.main([str(bag), "--workers", "1", "--loops", "1", "--budget", "0", "--config", str(conf)]) == 0
+    out = capsys.readouterr().out
+    assert "frames/min" in out and "time budget" not in out
+    assert TP.main([str(bag), "--budget", "-1", "--config", str(conf)]) == 2
+    assert "--budget must be >= 0" in capsys.readouterr().err

@@ -144,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("bag", nargs="?", default="bags/demo", help="rosbag2 recording (default: bags/demo)")
     p.add_argument("--workers", default="1,2", help="worker counts to compare (default 1,2)")
     p.add_argument("--loops", type=int, default=2, help="times the recording is looped for the worker runs (default 2)")
-    p.add_argument("--budget", type=float, default=6.0, help="time_budget_s of the budget comparison (default 6 s per frame)")
+    p.add_argument("--budget", type=float, default=6.0, help="time_budget_s of the budget comparison (default 6 s per frame; 0: no budget comparison)")
     p.add_argument("--budget-frames", type=int, default=4, help="frames of the budget comparison (default 4)")
     p.add_argument("--config", default=None, help="parameter file (default: config/pws.yaml)")
     p.add_argument("--json", action="store_true", help="print the measurements as JSON")
@@ -160,6 +160,9 @@ def main(argv: list[str] | None = None) -> int:
     from ..bridge.workers import available_cores
     from ..replay.options import load_replay_config
 
+    if not args.budget >= 0:
+        print(f"--budget must be >= 0 s (0: no budget comparison), got {args.budget:g}", file=sys.stderr)
+        return 2
     config = load_replay_config(args.config)
     frames = bag_frames(Path(args.bag), config)
     if not frames:
@@ -174,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
         r["speedup"] = base["wall_s"] / r["wall_s"]
         r["busy_speedup"] = r["busy_frames_per_min"] / base["busy_frames_per_min"]
         r["equal_to_first"] = r["certs"] == base["certs"]
-    rows = budget_rows(config, frames[: args.budget_frames], args.budget)
+    rows = budget_rows(config, frames[: args.budget_frames], args.budget) if args.budget > 0 else []
     load1 = os.getloadavg()
     machine = {"cores": available_cores(), "loadavg_before": [round(x, 2) for x in load0],
                "loadavg_after": [round(x, 2) for x in load1]}
@@ -191,6 +194,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['busy_frames_per_min']:>12.1f}  {r['busy_speedup']:>7.2f}x  {'yes' if r['equal_to_first'] else 'NO':>11}  {r['per_worker']}")
     print("(all busy: W x frames / the workers' summed busy time, the rate when every worker always has a frame of its own, "
           "as live under the latest-only policy)")
+    if not rows:
+        return 0
     print(f"\ntime budget {args.budget:g} s per frame vs none (first {len(rows) // max(1, len(config.axes))} frames):")
     print(f"{'frame':>5} {'axis':>4} | {'none: s':>7} {'calls':>5} {'anch':>4} {'n':>4} {'grid':>4} {'radius':>9} | "
           f"{'share s':>7} {'spent s':>7} {'calls':>5} {'anch':>4} {'n':>4} {'grid':>4} {'radius':>9} {'of':>9}")
