@@ -486,21 +486,23 @@ def _without_timings(certs) -> list[str]:
     return [json.dumps(strip(c.to_dict()), sort_keys=True, default=str) for c in certs]
 
 
-def test_axes_at_the_same_time_give_the_frame_of_one_after_another(model_path, small_camera):
+@pytest.mark.parametrize("extra", [{}, {"imaging": "paper"}, {"method": "cms", "n0": 8, "n": 16}], ids=["surfel", "paper", "cms"])
+def test_axes_at_the_same_time_give_the_frame_of_one_after_another(model_path, small_camera, extra):
     """axis_threads: the certificates (every field but the timings, the self-audits included), plans and previews of
     a frame whose axes run at the same time are those of one axis after another, in config order."""
     cloud = scene(small_camera)
-    params = dict(axes=["tz", "ry", "tx"], audit_every=1, audit_poses=3, **{"radius.tx": 0.02})
+    params = dict(axes=["tz", "ry", "tx"], audit_every=1, audit_poses=3, **{"radius.tx": 0.02}, **extra)
     one, _ = make_engine(model_path, axis_threads=1, **params)
     many, _ = make_engine(model_path, axis_threads=3, **params)
     assert one.axis_workers() == 1 and many.axis_workers() == 3
     a = one.process(cloud, small_camera, 7, preview_every=3)
     b = many.process(cloud, small_camera, 7, preview_every=3)
     assert [c.axis for c in b.certificates] == ["tz", "ry", "tx"]
-    assert all(c.status != "error" and c.bounds["audit"]["violations"] == 0 for c in b.certificates)
+    assert all(c.status != "error" for c in b.certificates), [c.reason for c in b.certificates]
+    assert all(b.certificates[k].bounds["audit"]["violations"] == 0 for k, ax in enumerate(["tz", "ry", "tx"]) if ax in b.plans)
     assert _without_timings(a.certificates) == _without_timings(b.certificates)
     assert {k: p.alphas.tolist() for k, p in a.plans.items()} == {k: p.alphas.tolist() for k, p in b.plans.items()}
-    assert [(ax, i) for ax, i, _ in a.previews] == [(ax, i) for ax, i, _ in b.previews] and a.previews
+    assert [(ax, i) for ax, i, _ in a.previews] == [(ax, i) for ax, i, _ in b.previews] and (a.previews or not a.plans)
     for (_, _, x), (_, _, y) in zip(a.previews, b.previews):
         np.testing.assert_array_equal(x, y)
     assert set(b.compute_ms) == {"tz", "ry", "tx"} and b.timings["total"] > 0
