@@ -89,13 +89,13 @@ def main(argv: list[str] | None = None) -> int:
 
 def run() -> None:
     """The ``pws`` executable: :func:`main`, then the exit with its status. A frame that a signal left while its axes
-    ran in threads of their own (:func:`pws_ros.bridge.axis_threads.axes_still_running`) may still be inside torch, and the
-    interpreter's teardown would abort under it ("terminate called without an active exception": SIGABRT instead of
-    130 or 143), so the process then ends without that teardown, its output already closed and stdio flushed (as a
-    node's process ends: ``pws_ros.nodes._ros``)."""
+    ran in threads of their own (:func:`pws_ros.bridge.axis_threads.axes_left_running`) has threads still inside torch,
+    or only just ending, and the interpreter's teardown would abort under them ("terminate called without an active
+    exception": SIGABRT instead of 130 or 143), so the process then ends without that teardown, its output already
+    closed and stdio flushed (as a node's process ends: ``pws_ros.nodes._ros``)."""
     code = main()
     threads = sys.modules.get(f"{__package__}.bridge.axis_threads")   # (imported only where axes ran: --help stays fast)
-    if threads is not None and threads.axes_still_running():
+    if threads is not None and threads.axes_left_running():
         import os
 
         sys.stdout.flush()

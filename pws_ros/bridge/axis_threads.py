@@ -34,9 +34,13 @@ def axis_imports() -> None:
         importlib.import_module(f"..core.{name}", __package__)
 
 
-def axes_still_running() -> list[str]:
-    """The axis threads still running (a frame that a signal left while its axes ran at the same time)."""
-    return sorted(t.name for t in threading.enumerate() if t.name.startswith(AXIS_THREAD) and t.is_alive())
+_LEFT = threading.Event()   # set once a wait in at_once was left by an exception (a signal): its threads ran on
+
+
+def axes_left_running() -> bool:
+    """Whether a frame was left while its axes ran (a signal raised in :func:`at_once`'s wait): their threads may
+    still be inside torch, or only just ending, and the interpreter's teardown then aborts (``pws_ros.cli.run``)."""
+    return _LEFT.is_set() or any(t.name.startswith(AXIS_THREAD) and t.is_alive() for t in threading.enumerate())
 
 
 def at_once(fn: Callable[[int], Any], n: int, workers: int) -> list:
@@ -63,12 +67,16 @@ def at_once(fn: Callable[[int], Any], n: int, workers: int) -> list:
     threads = [threading.Thread(target=work, name=f"{AXIS_THREAD}{i}", daemon=True) for i in range(max(1, min(n, workers)))]
     for t in threads:
         t.start()
-    for t in threads:
-        t.join()
+    try:
+        for t in threads:
+            t.join()
+    except BaseException:
+        _LEFT.set()
+        raise
     for exc in errors:
         if exc is not None:
             raise exc
     return results
 
 
-__all__ = ["AXIS_THREAD", "at_once", "axes_still_running", "axis_imports", "axis_workers"]
+__all__ = ["AXIS_THREAD", "at_once", "axes_left_running", "axis_imports", "axis_workers"]
