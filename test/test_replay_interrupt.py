@@ -36,14 +36,10 @@ def _mcap_certifications(out: Path) -> list:
         return [m for _s, ch, _m, m in reader.iter_decoded_messages() if ch.topic == "/certification"]
 
 
-def test_sigterm_closes_a_readable_bag_and_a_summary_marked_interrupted(make_model_file, tmp_path):
-    assert DEMO.exists(), "the shipped demo bag bags/demo is missing"  # shipped: required, not skipped
-    model = make_model_file(input_size=(24, 32))
-    out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "pws_ros.cli", "replay", str(DEMO), "--out", str(out), "--axes", "tz", "--radius", "tz=2mm",
-           "--n0", "16", "--n", "256", "--model", str(model), "--progress-interval", "0", "--json",
-           "--report", str(tmp_path / "report"), "--video", str(tmp_path / "v.mp4")]
-    proc = subprocess.Popen(cmd, cwd=tmp_path, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+def _sigterm_after_first_frame(cmd: list[str], cwd: Path, wait_s: float, settle_s: float = 0.0) -> tuple[int, str, str, float]:
+    """Run the replay ``cmd``; once its first of the demo's 8 frames is done (and ``settle_s`` more), send SIGTERM.
+    Returns the exit status, stdout, stderr and the seconds from the signal to the exit."""
+    proc = subprocess.Popen(cmd, cwd=cwd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     err_lines: list[str] = []
     first_frame = threading.Event()
 
@@ -59,18 +55,30 @@ def test_sigterm_closes_a_readable_bag_and_a_summary_marked_interrupted(make_mod
     out_reader = threading.Thread(target=lambda: out_chunks.append(proc.stdout.read()), daemon=True)
     out_reader.start()  # each pipe has one reader only (communicate() would race the stderr thread)
     try:
-        assert first_frame.wait(60), "no frame finished within 60 s:\n" + "".join(err_lines)
+        assert first_frame.wait(wait_s), f"no frame finished within {wait_s:g} s:\n" + "".join(err_lines)
+        time.sleep(settle_s)
         assert proc.poll() is None, "the replay ended before it could be interrupted"
+        t0 = time.monotonic()
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=60)
+        took = time.monotonic() - t0
     finally:
         if proc.poll() is None:
             proc.kill()
     reader.join(10)
     out_reader.join(10)
-    stdout = "".join(out_chunks)
-    stderr = "".join(err_lines)
-    assert proc.returncode == 143, stderr
+    return proc.returncode, "".join(out_chunks), "".join(err_lines), took
+
+
+def test_sigterm_closes_a_readable_bag_and_a_summary_marked_interrupted(make_model_file, tmp_path):
+    assert DEMO.exists(), "the shipped demo bag bags/demo is missing"  # shipped: required, not skipped
+    model = make_model_file(input_size=(24, 32))
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "pws_ros.cli", "replay", str(DEMO), "--out", str(out), "--axes", "tz", "--radius", "tz=2mm",
+           "--n0", "16", "--n", "256", "--model", str(model), "--progress-interval", "0", "--json",
+           "--report", str(tmp_path / "report"), "--video", str(tmp_path / "v.mp4")]
+    returncode, stdout, stderr, _took = _sigterm_after_first_frame(cmd, tmp_path, wait_s=60)
+    assert returncode == 143, stderr
     assert "pws replay: interrupted: stopped by SIGTERM after" in stderr
     summary = json.loads(stdout)
     done = summary["frames"]["processed"]
@@ -166,38 +174,11 @@ def test_sigterm_while_a_frames_axes_run_at_once_exits_143_with_the_bag_closed(t
     # the shipped model and sizes (about 2-3 s a frame): the signal comes while both axes are inside torch
     cmd = [sys.executable, "-m", "pws_ros.cli", "replay", str(DEMO), "--out", str(out), "--config", str(conf),
            "--progress-interval", "0", "--json"]
-    proc = subprocess.Popen(cmd, cwd=tmp_path, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    err_lines: list[str] = []
-    first_frame = threading.Event()
-
-    def read_stderr():
-        for line in proc.stderr:
-            err_lines.append(line)
-            if "pws replay: 1/8 frames" in line:
-                first_frame.set()
-
-    out_chunks: list[str] = []
-    reader = threading.Thread(target=read_stderr, daemon=True)
-    reader.start()
-    out_reader = threading.Thread(target=lambda: out_chunks.append(proc.stdout.read()), daemon=True)
-    out_reader.start()
-    try:
-        assert first_frame.wait(120), "no frame finished within 120 s:\n" + "".join(err_lines)
-        time.sleep(1.0)   # the second frame's axes under way
-        assert proc.poll() is None, "the replay ended before it could be interrupted"
-        t0 = time.monotonic()
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(timeout=60)
-        took = time.monotonic() - t0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    reader.join(10)
-    out_reader.join(10)
-    stderr = "".join(err_lines)
-    assert proc.returncode == 143, stderr
+    # (1 s after the first frame: the second frame's axes under way)
+    returncode, stdout, stderr, took = _sigterm_after_first_frame(cmd, tmp_path, wait_s=120, settle_s=1.0)
+    assert returncode == 143, stderr
     assert "terminate called" not in stderr and "stopped by SIGTERM after" in stderr
-    summary = json.loads("".join(out_chunks))
+    summary = json.loads(stdout)
     done = summary["frames"]["processed"]
     assert summary["exit_code"] == 143 and 1 <= done < 8
     from rosbags.highlevel import AnyReader

@@ -38,9 +38,10 @@ _LEFT = threading.Event()   # set once a wait in at_once was left by an exceptio
 
 
 def axes_left_running() -> bool:
-    """Whether a frame was left while its axes ran (a signal raised in :func:`at_once`'s wait): their threads may
-    still be inside torch, or only just ending, and the interpreter's teardown then aborts (``pws_ros.cli.run``)."""
-    return _LEFT.is_set() or any(t.name.startswith(AXIS_THREAD) and t.is_alive() for t in threading.enumerate())
+    """Whether a frame was left while its axes ran (a signal raised in :func:`at_once`'s wait, the only way its threads
+    outlive it): they may still be inside torch, or only just ending, and the interpreter's teardown then aborts
+    (``pws_ros.cli.run``)."""
+    return _LEFT.is_set()
 
 
 def at_once(fn: Callable[[int], Any], n: int, workers: int) -> list:
@@ -65,9 +66,9 @@ def at_once(fn: Callable[[int], Any], n: int, workers: int) -> list:
                 errors[k] = exc
 
     threads = [threading.Thread(target=work, name=f"{AXIS_THREAD}{i}", daemon=True) for i in range(max(1, min(n, workers)))]
-    for t in threads:
-        t.start()
-    try:
+    try:   # (a signal may come while they start, too)
+        for t in threads:
+            t.start()
         for t in threads:
             t.join()
     except BaseException:

@@ -204,10 +204,11 @@ class FrameCertifier:
             from ..core.certify import grid_cap, segment_bytes
 
             fit = grid_cap(im, self.certify_config())
+            together = self.axis_workers(self.budget.on)
             self.log("info", f"{im.describe()}; memory per axis: frames and bounds of at most {fit} segments x "
                              f"{segment_bytes(im) / 2**20:.2f} MiB = {fit * segment_bytes(im) / 2**20:.0f} MiB "
                              f"(max_memory_mb {c.max_memory_mb:g}), the renderer streams in chunks"
-                             + (f"; {self.axis_workers()} axes at once (axis_threads)" if self.axis_workers() > 1 and not self.budget.on else ""))
+                             + (f"; {together} axes at once (axis_threads)" if together > 1 else ""))
             for text in size_advice(im, self.batch_size):
                 self.log("warn", text)
         return im
