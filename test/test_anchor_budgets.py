@@ -256,6 +256,21 @@ def test_a_unanimous_selection_is_not_read_as_p_a_1_for_many_samples():
     assert abs(got - want) < 1e-9 and got < 0.9 * unanimous   # 0.68 against 0.79
 
 
+def test_the_planned_votes_are_scipy_stats_betabinom_quantiles():
+    """The unanimous selection's planned votes (the beta-binomial quantile, computed in the module from log-gamma
+    sums: importing scipy.stats costs about a second of every command's start) are scipy.stats.betabinom.ppf's,
+    for every look size up to 700 at the shipped n0 and on sizes up to 25,000 and other n0, ties m = 3 n0 + 3 included."""
+    from scipy.stats import betabinom
+
+    from pws_ros.core.anchors import PLAN_QUANTILE, planned_votes
+
+    rng = np.random.default_rng(3)
+    cases = [(m, 64) for m in range(1, 700)] + [(3 * n0 + 3, n0) for n0 in range(1, 200, 7)]
+    cases += [(int(rng.integers(1, 25_000)), int(rng.choice([8, 16, 32, 100, 128, 256]))) for _ in range(60)]
+    for m, n0 in cases:
+        assert planned_votes(1.0, m, n0) == int(betabinom.ppf(PLAN_QUANTILE - 1e-9, m, n0 + 1, 1)), (m, n0)
+
+
 @settings(max_examples=40, deadline=None)
 @given(k0=st.integers(40, 64), a=st.integers(1, 40), more=st.integers(1, 40), n=st.sampled_from([64, 100, 256]),
        n_first=st.sampled_from([16, 32, 64]))

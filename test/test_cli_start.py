@@ -31,6 +31,17 @@ def test_pws_help_imports_nothing_heavy():
         assert f"\n    {name}" in stdout
 
 
+def test_a_certification_imports_neither_scipy_stats_nor_sympy():
+    """A command's start before its first frame (issue 34, item 3): scipy.stats (about a second: the statistics come
+    from scipy.special, the same values) and sympy (half a second: torch's symbolic shapes, which
+    torch.broadcast_shapes imports on first use) are not imported by a whole certification, bag reading included."""
+    stdout, modules = _imported_by(["ceiling", str(ROOT / "bags" / "demo"), "--no-model", "--max-frames", "1", "--axes", "tz",
+                                    "--size", "30x40"])
+    assert "median ceiling" in stdout, stdout
+    assert "torch" in modules and "rosbags" in modules     # (the check sees the imports of a certification)
+    assert not modules & {"scipy.stats", "sympy"}, sorted(modules & {"scipy.stats", "sympy"})
+
+
 def test_the_listed_lines_are_the_commands_own():
     """The lines `pws --help` lists without importing a command are the help each command registers."""
     import argparse

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -71,24 +71,30 @@ class Conn:
     count: int | None
 
 
-def undefined_refs(fielddefs: dict[str, Any], msgtype: str) -> set[str]:
-    """Message types ``msgtype`` uses (recursively) that ``fielddefs`` does not define."""
+def used_types(fielddefs: dict[str, Any], roots: Iterable[str]) -> tuple[set[str], set[str]]:
+    """``(defined, missing)``: the message types the ``roots`` are or use (recursively) that ``fielddefs`` defines,
+    and those it does not."""
     from rosbags.typesys.base import Nodetype
 
+    defined: set[str] = set()
     missing: set[str] = set()
-    seen: set[str] = set()
-    stack = [msgtype]
+    stack = list(roots)
     while stack:
         name = stack.pop()
-        if name in seen:
+        if name in defined or name in missing:
             continue
-        seen.add(name)
         if name not in fielddefs:
             missing.add(name)
             continue
+        defined.add(name)
         for _fname, (ntype, detail) in fielddefs[name][1]:
             while ntype in (Nodetype.ARRAY, Nodetype.SEQUENCE):
                 (ntype, detail), _size = detail
             if ntype == Nodetype.NAME:
                 stack.append(detail)
-    return missing
+    return defined, missing
+
+
+def undefined_refs(fielddefs: dict[str, Any], msgtype: str) -> set[str]:
+    """Message types ``msgtype`` uses (recursively) that ``fielddefs`` does not define."""
+    return used_types(fielddefs, [msgtype])[1]

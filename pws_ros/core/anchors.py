@@ -19,7 +19,7 @@ import functools
 from typing import Callable
 
 import numpy as np
-from scipy.stats import betabinom
+from scipy.special import gammaln
 
 from .partition import Plan
 from .smoothing import clopper_pearson_lower, cohen_radius
@@ -48,7 +48,13 @@ def planned_votes(rate: float, m: int, n0: int) -> int:
 @functools.lru_cache(maxsize=4096)
 def _unanimous_votes(m: int, n0: int, quantile: float) -> int:
     """:func:`planned_votes` after a unanimous selection (remembered: the plans ask for it every frame)."""
-    return int(betabinom.ppf(quantile - 1e-9, m, n0 + 1, 1))   # a float tie (m = 3 n0 + 3) goes below
+    # the votes X ~ BetaBinomial(m, n0 + 1, 1): P(X = k) = a m! Gamma(k + a) / (k! Gamma(m + a + 1)), a = n0 + 1; the
+    # least k with P(X <= k) at least the quantile (the cumulative sums never decrease), as scipy.stats.betabinom.ppf
+    # (the same k on every (m, n0) compared; that module's import costs about a second of a command's start)
+    a = n0 + 1.0
+    k = np.arange(m + 1, dtype=np.float64)
+    cdf = np.cumsum(np.exp(np.log(a) + gammaln(m + 1.0) - gammaln(m + a + 1.0) + gammaln(k + a) - gammaln(k + 1.0)))
+    return min(m, int(np.searchsorted(cdf, quantile - 1e-9)))   # a float tie (m = 3 n0 + 3) goes below
 
 
 def target_radius(k0: int, n0: int, n: int, sigma: float, alpha: float, max_anchors: int) -> float:

@@ -163,7 +163,9 @@ def _project_torch(points, intr: CameraIntrinsics, axis: str, alpha):
             Xp, Yp, Zp = torch.mul(X, c).addcmul_(Y, s), torch.mul(X, s).neg_().addcmul_(Y, c), Z
         else:
             raise PwsError(f"unknown motion axis {axis!r}")
-    shape = torch.broadcast_shapes(points.shape[:-1], torch.as_tensor(alpha).shape)
+    # (numpy's rule on the two shapes: torch.broadcast_shapes imports its symbolic-shape machinery and sympy on first
+    # use, half a second of a command's start)
+    shape = np.broadcast_shapes(tuple(points.shape[:-1]), tuple(torch.as_tensor(alpha).shape))
     Zp = Zp.expand(shape) if Zp.shape != shape else Zp
     # 1/Z' kept finite: a depth within 1e-300 of 0 then gives a point far off the image (as X'/Z' does),
     # never 0 * inf = NaN

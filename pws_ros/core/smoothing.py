@@ -26,14 +26,34 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 import torch
-from scipy.stats import beta as _beta
-from scipy.stats import norm as _norm
+from scipy.special import ndtri as _ndtri   # scipy.stats.norm.ppf's own function
 
 from .errors import require
 from .model import LoadedModel
 
 
 # ---- statistics ----------------------------------------------------------------------------
+
+@functools.lru_cache(maxsize=1)
+def _beta_quantile() -> Callable[..., Any]:
+    """``scipy.stats.beta.ppf``'s own quantile function, ``(q, a, b)``: the ufunc it calls, from ``scipy.special``
+    where this scipy has it there (1.12 and later); else ``scipy.stats.beta.ppf`` itself. The same values either way;
+    importing ``scipy.stats`` costs about a second of every command's start (issue 34, item 3)."""
+    from scipy.special import _ufuncs
+
+    ufunc = getattr(_ufuncs, "_beta_ppf", None)
+    if ufunc is not None:
+        return ufunc
+    from scipy.stats import beta
+
+    return beta.ppf
+
+
+def _beta_ppf(q: Any, a: Any, b: Any) -> np.ndarray:
+    """The ``q`` quantile of ``Beta(a, b)`` for ``0 < q < 1``, ``a, b > 0`` (what ``scipy.stats.beta.ppf`` gives there)."""
+    with np.errstate(over="ignore"):   # (as scipy.stats: an overflow inside the inversion is not an error)
+        return np.asarray(_beta_quantile()(q, a, b), dtype=np.float64)
+
 
 def _to_numpy(x: Any) -> np.ndarray:
     if isinstance(x, torch.Tensor):
@@ -100,7 +120,7 @@ def _cp_lower(k: Any, n: Any, alpha: Any) -> Any:
     k_arr, n_arr = _check_counts(k, n)
     k_b, n_b, a_b = np.broadcast_arrays(k_arr, n_arr, a)
     safe_k = np.maximum(k_b, 1)
-    lo = np.where(k_b == 0, 0.0, _beta.ppf(a_b, safe_k, n_b - k_b + 1))
+    lo = np.where(k_b == 0, 0.0, _beta_ppf(a_b, safe_k, n_b - k_b + 1))
     return _out(np.asarray(lo, dtype=np.float64), k, n, alpha)
 
 
@@ -111,7 +131,7 @@ def clopper_pearson_upper(k: Any, n: Any, alpha: Any) -> Any:
     k_arr, n_arr = _check_counts(k, n)
     k_b, n_b, a_b = np.broadcast_arrays(k_arr, n_arr, a)
     safe_b = np.maximum(n_b - k_b, 1)
-    hi = np.where(k_b == n_b, 1.0, _beta.ppf(1.0 - a_b, k_b + 1, safe_b))
+    hi = np.where(k_b == n_b, 1.0, _beta_ppf(1.0 - a_b, k_b + 1, safe_b))
     return _out(np.asarray(hi, dtype=np.float64), k, n, alpha)
 
 
@@ -143,7 +163,7 @@ def cohen_radius(p_a_lower: Any, sigma: float) -> Any:
     p = _to_numpy(p_a_lower).astype(np.float64)
     require(bool(np.all(np.isfinite(p)) and np.all(p >= 0) and np.all(p <= 1)), f"p_a_lower must lie in [0, 1], got {_brief(p_a_lower)}")
     with np.errstate(divide="ignore"):
-        r = np.where(p > 0.5, s * _norm.ppf(np.where(p > 0.5, p, 0.75)), 0.0)
+        r = np.where(p > 0.5, s * _ndtri(np.where(p > 0.5, p, 0.75)), 0.0)
     return _out(np.asarray(r, dtype=np.float64), p_a_lower)
 
 
@@ -156,7 +176,7 @@ def cohen_radius_two_sided(p_a_lower: Any, p_b_upper: Any, sigma: float) -> Any:
     for name, p in (("p_a_lower", pa), ("p_b_upper", pb)):
         require(bool(np.all(np.isfinite(p)) and np.all(p >= 0) and np.all(p <= 1)), f"{name} must lie in [0, 1]")
     with np.errstate(divide="ignore", invalid="ignore"):
-        r = 0.5 * s * (_norm.ppf(pa) - _norm.ppf(pb))
+        r = 0.5 * s * (_ndtri(pa) - _ndtri(pb))
     r = np.where(pa > pb, r, 0.0)
     return _out(np.asarray(r, dtype=np.float64), p_a_lower, p_b_upper)
 
