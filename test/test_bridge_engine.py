@@ -520,7 +520,15 @@ def test_axis_threads_run_the_axes_at_the_same_time(model_path, small_camera, mo
         return certify_axis(*args, **kwargs)
 
     monkeypatch.setattr(eng, "certify_axis", meeting)
-    res = eng.process(scene(small_camera), small_camera, 1)
+    import pws_ros.core.surfel as surfel
+
+    binned, bin_ = [], surfel._bin
+    monkeypatch.setattr(surfel, "_bin", lambda *a: binned.append(1) or bin_(*a))
+    # a camera of 4x the model's input: its pixels binned 2x2 (imaging.decimate 2), once for both axes, the second
+    # axis waiting for the first's bins
+    big = CameraIntrinsics(width=128, height=96, fx=120.0, fy=120.0, cx=63.5, cy=47.5, frame_id="test_cam")
+    res = eng.process(scene(big), big, 1)
+    assert res.imaging.decimate == 2 and len(binned) == 1
     assert [c.axis for c in res.certificates] == ["tz", "ry"] and all(c.status != "error" for c in res.certificates)
     # shutting down: every axis not begun is an ERROR that says so
     stopped = eng.process(scene(small_camera), small_camera, 2, should_stop=lambda: True)

@@ -27,6 +27,7 @@ be over a range of motion, shared with the bounds (:mod:`.surfel_bounds`).
 """
 from __future__ import annotations
 
+import threading
 import zlib
 from typing import Iterator
 
@@ -268,17 +269,19 @@ def bin_cloud(points: np.ndarray, colors: np.ndarray, imaging: Imaging,
     filled = None if imaging.volume is None or filled_mask is None else np.ascontiguousarray(filled_mask, dtype=bool)
     key = (cam, s, imaging.volume, points.shape, points.dtype.str, colors.dtype.str, zlib.crc32(memoryview(points).cast("B")),
            zlib.crc32(memoryview(colors).cast("B")), None if filled is None else zlib.crc32(memoryview(filled).cast("B")))
-    for p_, c_, k_, out_ in _LAST_BINS:
-        if p_ is points and c_ is colors and k_ == key:
-            return out_
-    inside = imaging.select(points, filled)
-    sel_p, sel_c = (points, colors) if inside.all() else (points[inside], colors[inside])
-    out_ = _bin(sel_p, sel_c, cam) if s > 1 else (sel_p, sel_c)
-    _LAST_BINS[:] = [(points, colors, key, out_)]
-    return out_
+    with _BINS_LOCK:   # (a frame's axes at the same time, axis_threads: the second waits for the first's bins)
+        for p_, c_, k_, out_ in _LAST_BINS:
+            if p_ is points and c_ is colors and k_ == key:
+                return out_
+        inside = imaging.select(points, filled)
+        sel_p, sel_c = (points, colors) if inside.all() else (points[inside], colors[inside])
+        out_ = _bin(sel_p, sel_c, cam) if s > 1 else (sel_p, sel_c)
+        _LAST_BINS[:] = [(points, colors, key, out_)]
+        return out_
 
 
 _LAST_BINS: list = []
+_BINS_LOCK = threading.Lock()
 
 
 def _bin(points: np.ndarray, colors: np.ndarray, cam: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
