@@ -37,8 +37,9 @@ from .model import LoadedModel
 @functools.lru_cache(maxsize=1)
 def _beta_quantile() -> Callable[..., Any]:
     """``scipy.stats.beta.ppf``'s own quantile function, ``(q, a, b)``: the ufunc it calls, from ``scipy.special``
-    where this scipy has it there (1.12 and later); else ``scipy.stats.beta.ppf`` itself. The same values either way;
-    importing ``scipy.stats`` costs about a second of every command's start (issue 34, item 3)."""
+    where this scipy keeps it there (1.14 and later do; 1.12 and earlier keep it in ``scipy.stats``), else
+    ``scipy.stats.beta.ppf`` itself. The same values either way; importing ``scipy.stats`` costs about a second of
+    every command's start (issue 34, item 3)."""
     from scipy.special import _ufuncs
 
     ufunc = getattr(_ufuncs, "_beta_ppf", None)
