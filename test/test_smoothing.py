@@ -66,6 +66,26 @@ def test_clopper_pearson_and_cohen_are_scipy_stats_values_bit_for_bit():
     assert np.array_equal(cohen_radius_two_sided(pa, pb, 0.5), np.where(pa > pb, 0.5 * 0.5 * (norm.ppf(pa) - norm.ppf(pb)), 0.0))
 
 
+def test_a_scipy_without_the_ufunc_in_scipy_special_uses_scipy_stats(monkeypatch):
+    """scipy 1.12 and earlier keep beta.ppf's function in scipy.stats only: the bounds then come from there, the same."""
+    import types
+
+    import scipy.special
+    from scipy.stats import beta   # (imported first: scipy.stats keeps its own reference to the ufuncs)
+
+    import pws_ros.core.smoothing as smoothing
+
+    k, n = np.arange(0, 257), 256
+    want = clopper_pearson_lower(k, n, 0.001)
+    monkeypatch.setattr(scipy.special, "_ufuncs", types.SimpleNamespace())   # no _beta_ppf there
+    smoothing._beta_quantile.cache_clear()
+    try:
+        assert smoothing._beta_quantile() == beta.ppf
+        assert np.array_equal(clopper_pearson_lower(k, n, 0.001), want)
+    finally:
+        smoothing._beta_quantile.cache_clear()
+
+
 @pytest.mark.parametrize("k,n,alpha", [(1, 5, 0.05), (7, 10, 0.01), (55, 100, 0.001), (99, 100, 0.2), (37, 80, 0.5 / 7)])
 def test_clopper_pearson_matches_exact_binomial_tail(k, n, alpha):
     # lower: the p at which P(Bin(n,p) >= k) = alpha (increasing in p)
