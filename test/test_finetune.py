@@ -45,7 +45,10 @@ def options(tmp: Path, **kw) -> FinetuneOptions:
 
 
 def weights(path: Path) -> dict[str, torch.Tensor]:
-    return dict(torch.jit.load(str(path)).state_dict())
+    from pws_ros.core.model import quiet_jit
+
+    with quiet_jit():   # (torch.jit.load warns that TorchScript is deprecated, as the package's own loads do not)
+        return dict(torch.jit.load(str(path)).state_dict())
 
 
 @pytest.fixture(scope="module")
