@@ -330,13 +330,9 @@ class BagReader:
                 break
         return out
 
-    @property
-    def _jazzy(self) -> Any:
-        return _jazzy()
-
     def typestore_for(self, msgtype: str) -> Any:
         """The typestore whose definition of ``msgtype`` matches the bag's bytes (to copy them)."""
-        return self._jazzy if msgtype in self._use_jazzy else self.typestore
+        return _jazzy() if msgtype in self._use_jazzy else self.typestore
 
     def deserialize(self, m: BagMessage) -> Any:
         """The decoded message (rosbags dataclass); PwsError naming the topic when it cannot be decoded."""
@@ -344,15 +340,15 @@ class BagReader:
         if info is not None and not info.decodable and info.msgtype == m.msgtype:
             raise PwsError(f"cannot decode topic {m.topic}: {info.skip_reason}")
         if m.msgtype in self._use_jazzy:
-            return self._jazzy.deserialize_cdr(m.data, m.msgtype)
+            return _jazzy().deserialize_cdr(m.data, m.msgtype)
         try:
             return self.typestore.deserialize_cdr(m.data, m.msgtype)
         except Exception as exc:
             err = exc
         # a stored definition that does not match its own messages (seen in the wild): try Jazzy's
-        if m.msgtype in self._own_types and m.msgtype in self._jazzy.types:
+        if m.msgtype in self._own_types and m.msgtype in _jazzy().types:
             try:
-                out = self._jazzy.deserialize_cdr(m.data, m.msgtype)
+                out = _jazzy().deserialize_cdr(m.data, m.msgtype)
             except Exception:
                 pass
             else:
