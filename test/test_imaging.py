@@ -662,7 +662,7 @@ def test_large_boxes_enumerated_in_pieces_give_the_same_frames_and_bounds(monkey
     """covered_pairs enumerates the pixels of boxes over 2 pixels a side in pieces of PAIR_CHUNK (bounded
     temporaries): tiny pieces give bitwise the same frames and bounds; more pairs than MAX_COVERED_PAIRS
     (a cloud of points at the camera plane) are refused with a PwsError naming the cause, never allocated."""
-    import pws_ros.core.surfel as surfel
+    import pws_ros.core.footprint as footprint
 
     rng = np.random.default_rng(7)
     cloud = random_cloud(rng, False)
@@ -677,10 +677,10 @@ def test_large_boxes_enumerated_in_pieces_give_the_same_frames_and_bounds(monkey
         return r.render_batch(alphas).numpy(), h.lo, h.hi
 
     whole = run()
-    monkeypatch.setattr(surfel, "PAIR_CHUNK", 3)
+    monkeypatch.setattr(footprint, "PAIR_CHUNK", 3)
     pieces = run()
     for a, b in zip(whole, pieces):
         np.testing.assert_array_equal(a, b)
-    monkeypatch.setattr(surfel, "MAX_COVERED_PAIRS", 50)
+    monkeypatch.setattr(footprint, "MAX_COVERED_PAIRS", 50)
     with pytest.raises(PwsError, match="pixel-surfel pairs in one batch"):
         run()

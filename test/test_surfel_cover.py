@@ -11,12 +11,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 import torch
 
+import pws_ros.core.footprint as footprint_mod
 import pws_ros.core.surfel as surfel_mod
 import pws_ros.core.surfel_cover as cover
 from pws_ros.core.camera import CameraIntrinsics
 from pws_ros.core.cloud import Cloud, cloud_from_rgbd
 from pws_ros.core.imaging import SurfelRenderer, hulls_within, make_imaging
-from pws_ros.core.surfel import FootprintSweep
+from pws_ros.core.footprint import FootprintSweep
 
 CAM = CameraIntrinsics(32, 24, 30.0, 31.0, 15.5, 11.5, "cam")   # native 32x24, model 16x12
 RADIUS = {"tx": 0.03, "ty": 0.03, "tz": 0.06, "rx": 0.03, "ry": 0.03, "rz": 0.08}
@@ -97,7 +98,7 @@ def test_ranges_of_a_subset_are_those_of_the_whole(axis):
 @pytest.mark.parametrize("axis", ["tx", "ty", "tz", "ry"])
 def test_shared_corners_give_every_footprint(monkeypatch, axis):
     """Along a translation the renderer and the sweep project two opposite corners of each surfel
-    (surfel.footprint_corners), along ry the u and depth of two columns (surfel.project_corners): the footprints,
+    (footprint.footprint_corners), along ry the u and depth of two columns (footprint.project_corners): the footprints,
     the segments' sweep and sure boxes and the unions are bit for bit those of all four corners projected each on
     its own (motion.project), over ranges that hold split events (the pole of tz: points at depth 1 mm and 2 cm;
     ry's stationary depths near the centre column) and points behind the camera."""
@@ -121,8 +122,9 @@ def test_shared_corners_give_every_footprint(monkeypatch, axis):
         return r.corners.shape[0], flat + [*union[0], union[1], *union[2], union[3]] + list(r.footprints(torch.as_tensor(g)))
 
     two, got = run()
-    monkeypatch.setattr(surfel_mod, "footprint_corners", lambda corners, axis: corners)
-    monkeypatch.setattr(surfel_mod, "project_corners", lambda c, intr, axis, a: project(c, intr, axis, a, xp=torch))
+    for mod in (surfel_mod, footprint_mod):   # the renderer's names and the sweep's
+        monkeypatch.setattr(mod, "footprint_corners", lambda corners, axis: corners)
+        monkeypatch.setattr(mod, "project_corners", lambda c, intr, axis, a: project(c, intr, axis, a, xp=torch))
     four, want = run()
     assert (two, four) == (4 if axis == "ry" else 2, 4)
     assert len(FootprintSweep(SurfelRenderer(cloud, im, axis), -b, b).corner_ev[0]) > 0 or axis in ("tx", "ty")

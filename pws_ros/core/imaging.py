@@ -32,7 +32,8 @@ from .framing import (DEFAULT_RENDER_FACTOR, EDGE_EPS, IMAGING_KINDS, SAFETY, SA
                       VALUE_EPS, Imaging, auto_border, make_imaging, reduce_frames)
 from .motion import AXES
 from .partition import DEFAULT_FRAME_BUDGET, DEFAULT_STEP_PX, Plan, plan_partitions, plan_step
-from .surfel import SamplePoints, SurfelRenderer, bin_cloud, covered_pairs, occlusion_key, surfel_corners
+from .footprint import SamplePoints, covered_pairs, surfel_corners
+from .surfel import SurfelRenderer, bin_cloud, occlusion_key
 from .surfel_bounds import HullValues, hulls_within, render_plan_surfel, segment_hulls
 
 

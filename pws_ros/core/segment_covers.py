@@ -11,7 +11,8 @@ import torch
 
 from .errors import require
 from .framing import EDGE_EPS
-from .surfel import SurfelRenderer, pixel_range
+from .footprint import pixel_range
+from .surfel import SurfelRenderer
 from .surfel_bounds import _segment_boxes
 from .surfel_cover import lower_first, unique_indices
 
@@ -28,7 +29,7 @@ class SegmentCovers:
 
     Why they are the renderer's frames bit for bit: at a pose inside a segment, a surfel the renderer finds
     covering a pixel (its footprint at that pose, the pixel range and box tests of
-    :func:`.surfel.covered_pairs`, drawn there) has its footprint inside its sweep box over the segment and
+    :func:`.footprint.covered_pairs`, drawn there) has its footprint inside its sweep box over the segment and
     may be drawn there, so it is an outer pair of the segment; the first surely covering surfel covers the
     pixel at every pose of the segment and hides every later one. The pixel's winner is thus the least rank
     of the first surely covering surfel and of the candidates before it that the renderer's own tests find
@@ -180,7 +181,7 @@ class SegmentCovers:
         segments of ``g``, each inside a segment of the covers' grid (:meth:`decides`), as
         :func:`.surfel_cover.first_covers` gives them for the bounds, from the covers of the parent segments instead of
         from every surfel: the parent's candidates that the bounds' own tests (boxes of the child from
-        :meth:`.surfel.FootprintSweep.ranges`, ``EDGE_EPS`` as :func:`.surfel_cover.first_covers` widens them: the
+        :meth:`.footprint.FootprintSweep.ranges`, ``EDGE_EPS`` as :func:`.surfel_cover.first_covers` widens them: the
         pixel range, box and mask, then the sure box and mask) find maybe and surely covering in the child.
 
         Why it is sound, along any axis. A segment's covers hold two facts: at every pose of the segment, the surfel
@@ -201,7 +202,7 @@ class SegmentCovers:
         or ends around it, which are the parent's; the same for ``v``, the corner depths and the centre depth (and tx,
         ty). So a child segment's sweep box lies inside its parent's and its sure box holds the parent's, bit for bit
         (:func:`.surfel_bounds._segment_boxes`; a wild child is a wild parent), and so do the pixel ranges
-        :func:`.surfel.covered_pairs` enumerates (``ceil`` of an edge, monotone too). Hence a pair that may cover in
+        :func:`.footprint.covered_pairs` enumerates (``ceil`` of an edge, monotone too). Hence a pair that may cover in
         the child may in the parent; the parent's first surely covering surfel surely covers in the child, so the
         child's first is at most the parent's; and every outer pair of the child of rank below the parent's first is
         a kept candidate of the parent. A rotation mixes two moving terms (``c X - s Z``): no such argument. There a
@@ -232,7 +233,7 @@ class SegmentCovers:
         def pick(x):
             return x.reshape(-1).index_select(0, at)
 
-        # the tests of .surfel.covered_pairs (as .surfel_cover.first_covers widens its boxes), pair by pair: the pixel
+        # the tests of .footprint.covered_pairs (as .surfel_cover.first_covers widens its boxes), pair by pair: the pixel
         # range it enumerates (where the samples do not imply it, .surfel_cover.range_implied), the box and mask
         u0, u1, v0, v1 = (pick(x) for x in outer)
         col, row = pix % W, torch.div(pix, W, rounding_mode="floor")

@@ -6,7 +6,7 @@ every value it can show for some ``alpha`` in the segment (:func:`segment_hulls`
 the colours of every surfel whose footprint can cover its sample point there and that no surely covering
 surfel always hides, plus its uncovered value unless some surfel surely covers it throughout. Footprint
 corners are monotone between the split points of :func:`.motion.split_events`, so their ranges over the
-segment are read at its ends and at those split points (:class:`.surfel.FootprintSweep`), widened by
+segment are read at its ends and at those split points (:class:`.footprint.FootprintSweep`), widened by
 ``EDGE_EPS`` pixels for float rounding. The renderer ranks its surfels in occlusion order (key, then
 index: one constant order for the whole motion), so a surfel that surely covers a pixel throughout the
 segment hides every later surfel, equal keys included, by one comparison of ranks: no depth tolerance is
@@ -26,7 +26,8 @@ from .cloud import Cloud
 from .errors import require
 from .framing import EDGE_EPS, SAFETY, VALUE_EPS, Imaging, block_mean64, block_origins
 from .partition import validate_grid
-from .surfel import FootprintSweep, SurfelRenderer, covered_pairs
+from .footprint import FootprintSweep, covered_pairs
+from .surfel import SurfelRenderer
 from .surfel_cover import UnionPolicy, first_covers
 
 
@@ -374,7 +375,7 @@ def _natives(at: torch.Tensor, im: Imaging) -> torch.Tensor:
 
 
 def _segment_boxes(u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi, H: int, W: int):
-    """Per segment and surfel (:meth:`.surfel.FootprintSweep.ranges`) the sweep box (where the footprint can be),
+    """Per segment and surfel (:meth:`.footprint.FootprintSweep.ranges`) the sweep box (where the footprint can be),
     whether it may be drawn, the sure box (where it surely is) and whether it is surely drawn, each (B, P)."""
     # a surfel is drawn at alpha iff every corner and its centre are in front of the camera
     sure_drawn = (d_lo > 0).all(1) & (z_lo > 0)                                           # (B, P)

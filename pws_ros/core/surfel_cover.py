@@ -3,14 +3,14 @@ every element of the batch (the renderer's winners, :class:`.surfel.SurfelRender
 candidates, :mod:`.surfel_bounds`).
 
 Both ask, per element ``b`` of a batch (a pose, or a segment of motion) and native pixel ``q``, about the
-pairs (surfel ``p``, pixel ``q``) whose sample point lies in an *outer* box of ``p`` (:func:`.surfel.covered_pairs`:
+pairs (surfel ``p``, pixel ``q``) whose sample point lies in an *outer* box of ``p`` (:func:`.footprint.covered_pairs`:
 a footprint, or where a footprint can be over a segment) and those whose sample lies in an *inner* box
 (the same footprint, or where it surely is throughout the segment): ``first[b, q]``, the least occlusion
 rank of the inner pairs (the renderer's winner, the bounds' first surely covering surfel), and the outer
 pairs of rank at most ``first`` (the bounds' candidates). :func:`first_covers` gives exactly what
 enumerating every element's pairs gives (:func:`reference_first_covers`), in two passes:
 
-1. **Union.** One :func:`.surfel.covered_pairs` call on the boxes of the whole batch: per surfel the hull
+1. **Union.** One :func:`.footprint.covered_pairs` call on the boxes of the whole batch: per surfel the hull
    of its outer boxes (float ``min`` / ``max`` over the elements, so every element's box lies inside it
    bit for bit) and the intersection of its inner boxes and pixel ranges (inside every element's inner
    box). A pixel whose first pair in occlusion order among the union's is inside the intersection shows
@@ -18,7 +18,7 @@ enumerating every element's pairs gives (:func:`reference_first_covers`), in two
    once for the batch.
 2. **The rest.** The other pixels (*dynamic*: a nearer surfel's edge may cross the sample) are decided per
    element from their union pairs of rank at most the first static-inner one, with the very tests of
-   :func:`.surfel.covered_pairs` (pixel range, then box; ``eps`` as given).
+   :func:`.footprint.covered_pairs` (pixel range, then box; ``eps`` as given).
 
 On a real camera frame most pixels are static over a batch of neighbouring poses (neighbouring surfels of
 one surface overlap; only edges crossing a sample change a pixel), so the per-element work is a small share.
@@ -45,7 +45,7 @@ MIN_MARGIN = 1e-9
 
 
 def range_implied(samples) -> bool:
-    """Whether a sample point inside a box (the box test of :func:`.surfel.covered_pairs`, any ``eps`` >= 0
+    """Whether a sample point inside a box (the box test of :func:`.footprint.covered_pairs`, any ``eps`` >= 0
     or its negative) always lies in the pixel range it enumerates for that box, so that the box test alone
     decides a pair. The range is the pixels whose jitter square ``c + 1/2 +- SAMPLE_JITTER`` reaches the box;
     a sample at least ``MIN_MARGIN`` inside its square is in range with that margin (float rounding of
@@ -99,7 +99,7 @@ class UnionPolicy:
 
 def union_of(u_lo, u_hi, v_lo, v_hi, d_lo, z_lo, z_hi):
     """From the footprint ranges of each surfel over a range of motion ``[a, b]`` (one segment of
-    :meth:`.surfel.FootprintSweep.ranges`: (C, P) and (P,)), the ``union`` of :func:`first_covers`: a box
+    :meth:`.footprint.FootprintSweep.ranges`: (C, P) and (P,)), the ``union`` of :func:`first_covers`: a box
     holding its footprint at every pose of ``[a, b]`` (``[-inf, inf]`` where a corner may cross depth 0),
     whether it may be drawn there, a box inside its footprint at every pose, and whether it is surely drawn
     throughout; with room for float rounding (:func:`widen`), so that the footprints and sweep boxes
@@ -118,7 +118,7 @@ def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: to
                  candidates: bool = False, policy: UnionPolicy | None = None):
     """``first`` (B, H*W) long: per element ``b`` and native pixel the least ``rank`` of the surfels whose
     inner box holds the pixel's sample point among those whose outer box does, ``P`` where none, exactly as
-    :func:`.surfel.covered_pairs` with ``inner`` tests them (:func:`reference_first_covers`); ``pairs``: that
+    :func:`.footprint.covered_pairs` with ``inner`` tests them (:func:`reference_first_covers`); ``pairs``: that
     function (passed in by its module, which imports this one).
 
     ``element_boxes(subset)`` gives the boxes of the surfels ``subset`` (a sorted index tensor, None: all)
@@ -196,7 +196,7 @@ def first_covers(union, element_boxes, B: int, eps: float, ieps: float, rank: to
 
 
 def reference_first_covers(outer, omask, inner, imask, eps: float, ieps: float, rank: torch.Tensor, samples, pairs):
-    """:func:`first_covers` by enumerating every element's pairs (:func:`.surfel.covered_pairs`), what the
+    """:func:`first_covers` by enumerating every element's pairs (:func:`.footprint.covered_pairs`), what the
     renderer and the bounds did before it (boxes (B, P) as ``element_boxes`` gives them): ``first`` and
     every candidate pair ``(where, point)``."""
     B, P = outer[0].shape
