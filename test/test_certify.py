@@ -371,3 +371,35 @@ def test_refined_hulls_reuse_kept_segments_and_equal_a_fresh_bound(axis):
     for name in ("lo", "hi", "constant"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
     np.testing.assert_array_equal(got.alphas, fine)
+
+
+@pytest.mark.parametrize("coverage", COVERAGES)
+@pytest.mark.parametrize("alphas, bad", [([-1.0, -0.1, 0.0, 0.5, 1.0], 0), ([-1.0, -0.5, 0.0, 0.1, 1.0], 3)])
+def test_a_grid_not_symmetric_about_0_certifies_only_what_both_sides_cover(coverage, alphas, bad):
+    """Every-frame rules read the radius from the segments covered on both sides of 0: on a grid that is not
+    symmetric (a received or given plan may be any increasing grid holding 0), segment ``bad`` may show a value
+    far from every frame (a disocclusion), so no motion inside it is covered; the radius is the smaller of the two
+    covered ends, here 0.1 on either side (segments [-0.1, 0] and [0, 0.1] hold motions the claim covers)."""
+    from pws_ros.core.bounds import RenderedPlan, SegmentValues
+    from pws_ros.replay.ceiling import never_changing_model
+
+    import torch
+
+    alphas = np.asarray(alphas)
+    h, w = 4, 4
+    frames = np.full((len(alphas), h, w, 3), 0.5, np.float32)
+    values = SegmentValues(alphas, np.array([bad]), np.array([0]), np.array([[60.0, 60.0, 60.0]], np.float32), (h, w))
+    plan = Plan("pws_of", "tx", 1.0, float(np.diff(alphas).max()), len(alphas), alphas, "m", {"imaging": "paper"})
+    rendered = RenderedPlan(plan, torch.from_numpy(frames), values.pair_bound_sq(frames), values)
+    cfg = CertifyConfig(coverage=coverage, n0=16, n=200, alpha=0.01, num_anchors=len(alphas))
+    cert = certify_rendered(rendered, never_changing_model((h, w)), cfg)
+    # the independent reading: the largest Cohen radius of the bounds, and the bad segment's
+    # squared distance from any frame (one pixel, three channels at 60 against 0.5) far beyond it
+    R = _largest_cohen_radius(cert)
+    assert 3 * (60.0 - 0.5) ** 2 > 4 * R * R
+    assert cert.status == STATUS_NOT_CERTIFIED and cert.radius == pytest.approx(0.1)
+
+
+def _largest_cohen_radius(cert) -> float:
+    """The largest Cohen radius of a certificate's bounds, computed here (float64, scipy)."""
+    return cert.sigma * float(norm.ppf(max(cert.p_a_lower)))

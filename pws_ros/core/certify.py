@@ -250,5 +250,8 @@ def _certify_stream(frames_at: Callable, chunks: Iterator, plan: Plan, values: S
     t_stats += time.perf_counter() - t1
     timings = dict(timings)
     timings.update(render=t_render, inference=sc.inference_seconds, statistics=t_stats)
-    return _conclude(plan, centre, float(plan.alphas[centre + j]), est_pos, p_lower, R, label, model, config, method, sc,
+    # segments centre-j .. centre+j-1 are covered: the interval [alphas[centre-j], alphas[centre+j]], whose
+    # symmetric part is what is certified (a grid need not be symmetric about 0: a received or given plan)
+    reach = min(float(plan.alphas[centre + j]), -float(plan.alphas[centre - j])) if j else 0.0
+    return _conclude(plan, centre, reach, est_pos, p_lower, R, label, model, config, method, sc,
                      bounds, timings, t_start, frames_rendered=N + 1 + (m_bounds if anchors else 0))
