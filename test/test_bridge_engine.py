@@ -153,8 +153,9 @@ def test_unexpected_exceptions_are_contained(model_path, small_camera, monkeypat
     assert logs and logs[-1][0] == "error"
 
 
-def four_process(eng: FrameCertifier, cloud: Cloud, camera: CameraIntrinsics, S: int):
-    """plan bundle -> render -> frames/bounds as messages (CDR) -> assembler -> certify_assembled."""
+def four_process(eng: FrameCertifier, cloud: Cloud, camera: CameraIntrinsics, S: int, certifier: FrameCertifier | None = None):
+    """plan bundle -> render -> frames/bounds as messages (CDR) -> assembler -> certify_assembled (by ``certifier``,
+    a node configured apart, else ``eng``)."""
     bundle = eng.plan_bundle(cloud, camera, S, "cam")
     assert not bundle.errors and bundle.camera == camera
     wire = scheme.parse_plan_bundle_message(T.typestore.deserialize_cdr(
@@ -171,7 +172,7 @@ def four_process(eng: FrameCertifier, cloud: Cloud, camera: CameraIntrinsics, S:
         b = scheme.parse_bounds_message(scheme.bounds_message(S, axis, rendered, T))
         asm.add_bounds(S, axis, b.count, b)
     (frame,) = asm.pop_ready()
-    return bundle, eng.certify_assembled(frame)
+    return bundle, (certifier or eng).certify_assembled(frame)
 
 
 @pytest.mark.parametrize("imaging", ["surfel", "paper"])
@@ -195,6 +196,22 @@ def smooth_scene(intr: CameraIntrinsics) -> Cloud:
     r, c = np.mgrid[0:h, 0:w]
     rgb = np.stack([np.full((h, w), 230), 40 + 150 * c // w, 40 + 150 * r // h], axis=-1).astype(np.uint8)
     return cloud_from_rgbd(box_depth(intr), rgb, intr)
+
+
+def test_four_process_frame_alpha_is_split_over_the_axes_the_planner_sent(model_path, small_camera):
+    """The frame's statement covers every axis the certifier certifies: those of the planner's bundle. A
+    certifier node configured for fewer axes than its planner still splits the frame's alpha over the axes it
+    certifies (the per-axis levels sum to frame_alpha), and names the mismatch once."""
+    planner, _ = make_engine(model_path, axes=["tz", "ry", "tx"], **{"radius.tx": 0.05})
+    certifier, logs = make_engine(model_path, axes=["tz"])
+    for S in (1_700_000_000_000_000_010, 1_700_000_000_000_000_011):
+        _, four = four_process(planner, scene(small_camera), small_camera, S, certifier=certifier)
+        assert [c.axis for c in four.certificates] == ["tz", "ry", "tx"]
+        for c in four.certificates:
+            assert c.alpha == pytest.approx(0.01 / 3) and c.frame_alpha == 0.01
+        assert sum(c.alpha for c in four.certificates) == pytest.approx(four.certificates[0].frame_alpha)
+    warned = [m for level, m in logs if level == "warn" and "the planner sent axes" in m]
+    assert len(warned) == 1 and "tz, ry, tx" in warned[0] and "3 axes" in warned[0]
 
 
 def test_four_process_path_places_the_same_adaptive_anchors(model_path, small_camera):

@@ -127,6 +127,7 @@ class FrameCertifier:
         self._dense = dense_cloud
         self._lock = threading.Lock()
         self._aspect_warned = False       # paper imaging: the aspect-ratio warning was given
+        self._axes_warned: set[tuple[str, ...]] = set()   # four-process: planners' axes other than this node's, named once
         # surfel imaging: its description and memory estimate are logged at the first frame, and again when a
         # parameter change gives it another working volume, background or uncovered rule
         self._imaging_described: tuple | None = None
@@ -213,9 +214,10 @@ class FrameCertifier:
                 self.log("warn", text)
         return im
 
-    def certify_config(self, axis: str | None = None, stamp_ns: int = 0, sizes: Sizes | None = None):
-        """The core's CertifyConfig; for an axis of a frame: ``alpha / len(axes)`` and the derived seed;
-        with ``sizes`` (a time budget, :mod:`.budget`): their ``n0``, ``num_anchors``, ``n``, ``max_partitions``
+    def certify_config(self, axis: str | None = None, stamp_ns: int = 0, sizes: Sizes | None = None,
+                       num_axes: int | None = None):
+        """The core's CertifyConfig; for an axis of a frame: ``alpha / len(axes)`` (``num_axes``: the axes the
+        frame's statement covers, where they are not the configured ones) and the derived seed; with ``sizes`` (a time budget, :mod:`.budget`): their ``n0``, ``num_anchors``, ``n``, ``max_partitions``
         and ``frontier_rounds``."""
         from dataclasses import replace
 
@@ -224,7 +226,7 @@ class FrameCertifier:
         self._check_sigma()
         cfg = replace(self.config.certify_config(), device=self.device, batch_size=self.batch_size)
         if axis is not None:
-            cfg = replace(cfg, alpha=self.config.alpha / max(1, len(self.config.axes)),
+            cfg = replace(cfg, alpha=self.config.alpha / max(1, len(self.config.axes) if num_axes is None else int(num_axes)),
                           seed=derive_seed(self.config.seed, int(stamp_ns), axis))
         if sizes is not None and sizes.reduced:
             # a budget that shrank the work: what it sized is spent (core.certify_common.CertifyConfig.spread_estimation)
@@ -349,12 +351,14 @@ class FrameCertifier:
         return render_plan(self.source_cloud(cloud, dense_cloud), cam, plan, background=self.config.background_value, device=self.device)
 
     # ---- stage 3: certify ----
-    def certify_rendered(self, rendered: Any, stamp_ns: int = 0, imaging: Any = None) -> Certificate:
-        """Certify received frames and bounds; ``imaging`` (the bundle's) is recorded as the pipeline does."""
+    def certify_rendered(self, rendered: Any, stamp_ns: int = 0, imaging: Any = None, num_axes: int | None = None) -> Certificate:
+        """Certify received frames and bounds; ``imaging`` (the bundle's) is recorded as the pipeline does;
+        ``num_axes``: the axes of the frame's statement (:meth:`certify_config`)."""
         from ..core.certify import certify_rendered
 
         self.check_batch_size(tuple(rendered.frames.shape[1:3]))
-        cert = certify_rendered(rendered, self.model, self.certify_config(rendered.plan.axis, stamp_ns), denoiser=self.denoiser)
+        cert = certify_rendered(rendered, self.model, self.certify_config(rendered.plan.axis, stamp_ns, num_axes=num_axes),
+                                denoiser=self.denoiser)
         cert.imaging = str(rendered.plan.details.get("imaging", self.config.imaging))
         if imaging is not None:
             cert.bounds["imaging"] = imaging.to_dict()
@@ -362,10 +366,18 @@ class FrameCertifier:
         return self._stamp(cert)
 
     def certify_assembled(self, frame: AssembledFrame) -> FrameResult:
-        """Certify what the four-process certifier assembled (``frame.info`` is the PlanBundle)."""
+        """Certify what the four-process certifier assembled (``frame.info`` is the PlanBundle). The frame's
+        statement covers the axes the planner sent, whatever this node's ``axes``: each gets ``alpha`` divided by
+        their number (a planner configured with other axes is named in a warning, once per set of axes)."""
         t0 = time.perf_counter()
         bundle: PlanBundle | None = frame.info
         certs, timings, plans = [], {}, {}
+        names = tuple(ax.axis for ax in frame.axes)
+        if set(names) != set(self.config.axes) and names not in self._axes_warned:
+            self._axes_warned.add(names)
+            self.log("warn", f"the planner sent axes {', '.join(names)}, this certifier is configured for "
+                             f"{', '.join(self.config.axes)}: the frame's alpha {self.config.alpha:g} is split over the "
+                             f"{len(names)} axes certified (set the same axes on both nodes)")
         for ax in frame.axes:
             t1 = time.perf_counter()
             if not ax.ok:
@@ -376,7 +388,7 @@ class FrameCertifier:
                 plan = bundle.plans[ax.axis]
                 plans[ax.axis] = plan
                 certs.append(self._guard(ax.axis, lambda: self.certify_rendered(rendered_plan_from_parts(plan, ax.frames, ax.bounds),
-                                                                                frame.stamp_ns, bundle.imaging)))
+                                                                                frame.stamp_ns, bundle.imaging, len(names))))
             if bundle is not None:
                 certs[-1].filled_points = int(bundle.filled_points)   # as the pipeline: about the cloud with filled depth
             timings[ax.axis] = time.perf_counter() - t1
