@@ -301,3 +301,44 @@ def test_a_larger_budget_never_plans_a_smaller_target(k0, a, more, n, n_first):
             compared += 1
     if (k0, a, more, n, n_first) == (64, 24, 24, 256, 64):
         assert compared >= 32
+
+
+def test_a_weak_frame_estimates_the_centre_alone_with_the_whole_budget():
+    """Where the selection predicts no radius at the most anchors' level (a weak frame: p_A about 0.62), the
+    plan is the centre alone with all ``num_anchors * n`` samples at level alpha (docs/certificate.md): never
+    more anchors each with that whole budget (3 anchors of 800 samples each, 2,464 calls, before), which a
+    time budget sizing the work for ``n0 + num_anchors * n`` calls would overrun. Frames on a path whose
+    segments the Cohen radius covers several of, a classifier whose p_A is known in closed form."""
+    import torch
+    from scipy.stats import norm
+
+    from pws_ros.core.anchor_geometry import _FixedGeometry
+    from pws_ros.core.anchored import _certify_anchored
+    from pws_ros.core.model import LoadedModel
+    from pws_ros.core.surfel_bounds import HullValues
+
+    p, sigma, v0 = 0.62, 0.5, 0.5
+    thr = v0 - sigma * float(norm.ppf(p))   # class 0 iff pixel (0, 0, 0) plus its noise exceeds thr: P = p on every frame
+
+    class Net(torch.nn.Module):
+        def forward(self, x):
+            a = x[:, 0, 0, 0] - thr
+            return torch.stack([a, torch.zeros_like(a)], 1)
+
+    model = LoadedModel(Net().eval(), ["a", "b"], None, "closed form")
+    F, h, w = 81, 4, 4
+    alphas = np.linspace(-1.0, 1.0, F)
+    alphas[F // 2] = 0.0
+    f = np.full((F, h, w, 3), 0.5, np.float32)
+    f[:, 1, 1, 0] = (0.5 + 0.0083 * np.arange(F)).astype(np.float32)
+    hulls = HullValues(alphas, np.minimum(f[:-1], f[1:]), np.maximum(f[:-1], f[1:]), np.zeros((F - 1, h, w), bool))
+    plan = Plan("pws_of", "tx", 1.0, float(np.diff(alphas).max()), F, alphas, "m", {"imaging": "surfel"})
+    cfg = CertifyConfig(sigma=sigma, n0=64, n=100, alpha=0.01, num_anchors=8, seed=3, batch_size=2000).validate()
+    cert = _certify_anchored(_FixedGeometry(f, hulls), plan, AdaptiveAnchorsRule(cfg.num_anchors), model, cfg, None, None,
+                             "pws_of", {}, 0.0)
+    b = cert.bounds
+    assert b["looks"]["sizes"] == [cfg.num_anchors * cfg.n] and not b["looks"]["joint"]   # the weak-frame plan
+    assert b["anchors"] == [0.0] and b["anchor_samples"] == [cfg.num_anchors * cfg.n]
+    assert cert.classifier_calls == cfg.n0 + cfg.num_anchors * cfg.n
+    # its one bound at level alpha, recomputed from the votes it records
+    assert np.allclose(cert.p_a_lower, recomputed_p_a_lower(cert), rtol=1e-9, atol=1e-12)

@@ -212,7 +212,9 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
         dist = DistanceRows(hulls, frames, plan_sq)
         row = dist.row
         anchor_rows: dict[int, np.ndarray] = {}
-        est_idx = rule.place(row, plan.alphas, centre, target, rows_out=anchor_rows)
+        # at most the plan's anchors (a weak frame's plan: the centre alone, with the whole estimation budget)
+        est_idx = rule.place(row, plan.alphas, centre, target, rows_out=anchor_rows,
+                             budget=min(int(max_anchors), int(rule.num_anchors)))
         predicted = rule.predicted_reach(anchor_rows, est_idx, plan.alphas, centre, target_of(len(est_idx)))
         chosen = (predicted, est_idx, anchor_rows, max_anchors)
         if 0 < target and predicted < plan.radius:
