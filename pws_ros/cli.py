@@ -67,8 +67,12 @@ def command_in(argv: list[str]) -> str | None:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    parser = build_parser(command_in(argv))
-    args = parser.parse_args(argv)
+    try:
+        parser = build_parser(command_in(argv))
+        args = parser.parse_args(argv)
+    except KeyboardInterrupt:   # while the command's modules load (numpy, torch): before anything was written
+        print(" ".join(["pws"] + [w for w in [command_in(argv)] if w]) + ": interrupted", file=sys.stderr)
+        return 130
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

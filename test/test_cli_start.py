@@ -66,3 +66,16 @@ def test_a_command_help_is_built_in_full(capsys):
     assert exc.value.code == 0
     out = capsys.readouterr().out
     assert out.startswith("usage: pws plan") and "--radius" in out and "--method" in out
+
+
+def test_ctrl_c_while_the_command_loads_is_a_clean_exit_130(monkeypatch, capsys):
+    """SIGINT in the first second (numpy and torch loading while the parser is built) ends with one line and 130, no
+    traceback."""
+    import pws_ros.cli as cli
+
+    def interrupted(_command):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "build_parser", interrupted)
+    assert cli.main(["replay", "bags/demo"]) == 130
+    assert capsys.readouterr().err == "pws replay: interrupted\n"

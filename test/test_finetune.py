@@ -271,6 +271,14 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
         lines = err.strip().splitlines()
         assert rc == 2 and len(lines) == 1 and lines[0].startswith("pws finetune: error:") and words in lines[0], (argv, err)
         assert not out.exists() and stdout == ""
+    # a refused input leaves no work folder behind (it would block the next run: "exists, pass --resume")
+    fresh = ["--out", tmp_path / "o2.pt", *common[2:]]   # (a case above cached a frame: its work folder stays, for --resume)
+    rc, _o, err = run_cli([_bag_without_camera(tmp_path / "nocam2"), "--model", MODEL, "--sigma", "0.5", *fresh], capsys)
+    assert rc == 2 and "no camera input" in err and not (tmp_path / "o2.pt.work").exists()
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    rc, _o, err = run_cli([DEMO, "--model", MODEL, "--sigma", "0.5", "--out", afile / "o.pt", "--quiet"], capsys)
+    assert rc == 2 and "is a file, not a folder" in err and "Traceback" not in err
 
 
 def test_existing_work_folder_needs_resume_or_overwrite(tmp_path, capsys):

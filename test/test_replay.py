@@ -509,14 +509,41 @@ def test_bad_model_and_bad_options_exit_2_before_writing(sim_bag, tmp_path, caps
     assert rc == 2 and "bag not found" in err
 
 
+
+def test_outputs_that_cannot_be_made_are_refused_before_the_run(sim_bag, tmp_path, capsys, monkeypatch):
+    """--out, --report and --video under a file, or in a folder this process may not write, exit 2 with one line
+    naming the path, before any frame (a report lost after hours of work, or a traceback, before)."""
+    afile = tmp_path / "afile"
+    afile.write_text("not a folder")
+    for opt, path in (("--out", afile / "o"), ("--report", afile / "rep"), ("--video", afile / "v.mp4")):
+        args = [sim_bag, opt, path] + ([] if opt == "--out" else ["--no-output"])
+        rc, out, err = run_cli(args, capsys)
+        assert rc == 2 and str(afile) in err and "is a file" in err and "Traceback" not in err, (opt, err)
+        assert "frames" not in out
+    rc, _o, err = run_cli([sim_bag, "--no-output", "--report", afile], capsys)
+    assert rc == 2 and "exists and is not a folder" in err
+    import os as os_
+
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    real = os_.access
+    monkeypatch.setattr(os_, "access", lambda p, mode, **kw: False if Path(p) == locked else real(p, mode, **kw))
+    rc, _o, err = run_cli([sim_bag, "--no-output", "--report", locked / "rep"], capsys)
+    assert rc == 2 and f"the folder {locked} is not writable" in err
+
 def test_parse_radius_units():
     assert cmd.parse_radius("tz=5mm,ry=0.25deg", ["tz", "ry"]) == pytest.approx({"tz": 0.005, "ry": math.radians(0.25)})
     assert cmd.parse_radius("0.01", ["tz"]) == {"tz": 0.01}
-    assert cmd.parse_radius("rx=0.002", ["tz"]) == {"rx": 0.002}
+    assert cmd.parse_radius("rx=0.002", ["tz", "rx"]) == {"rx": 0.002}
     assert cmd.parse_radius("tx=1cm", ["tx"]) == pytest.approx({"tx": 0.01})
     for bad in ("tz=-1", "tz=abc", "tz=1furlong", "qq=1", ""):
         with pytest.raises(PwsError):
             cmd.parse_radius(bad, ["tz"])
+    # a radius for an axis not certified (a typo would be ignored), or one axis twice, is refused, naming it
+    with pytest.raises(PwsError, match="axis ry is not certified"):
+        cmd.parse_radius("ry=0.25deg", ["tz"])
+    with pytest.raises(PwsError, match="tz is given twice"):
+        cmd.parse_radius("tz=0.01,tz=0.02", ["tz"])
 
 
 def test_help_explains_everything(capsys):

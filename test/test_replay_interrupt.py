@@ -187,3 +187,26 @@ def test_sigterm_while_a_frames_axes_run_at_once_exits_143_with_the_bag_closed(t
         conns = [c for c in r.connections if c.topic == "/certification"]
         assert sum(1 for _ in r.messages(connections=conns)) == done
     assert took < 30, f"the exit took {took:.1f} s"
+
+
+def test_a_stopped_ceiling_prints_the_frames_it_finished_and_exits_with_the_signal(tmp_path):
+    """`pws ceiling` stopped by SIGTERM (as by Ctrl-C) is not an error: it prints the table of the frames it
+    finished, says how many, and exits 143 (before: "the ceiling run failed", exit 2, no table)."""
+    cmd = [sys.executable, "-m", "pws_ros.cli", "ceiling", str(DEMO), "--no-model", "--size", "90x160", "--axes", "tz",
+           "--max-frames", "8"]
+    proc = subprocess.Popen(cmd, cwd=tmp_path, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        for line in proc.stderr:   # the first frame has begun (its imaging is described), then a little more
+            if "surfel imaging" in line:
+                break
+        time.sleep(1.5)
+        assert proc.poll() is None, "the ceiling ended before it could be stopped"
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 143, err
+    done = [ln for ln in out.splitlines() if ln.split()[1:2] == ["tz"]]   # the table's rows: frame, axis, ...
+    assert "frame axis" in out and len(done) < 8
+    assert f"interrupted (SIGTERM) after {len(done)} frame(s)" in err and "Traceback" not in err

@@ -7,7 +7,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
-from ..core.errors import PwsError, require
+from ..core.errors import PwsError, require, require_creatable
 from .common import first_line, storage_kind
 
 
@@ -20,7 +20,10 @@ def prepare_output(path: str | Path, overwrite: bool = False) -> Path:
     p = check_output(path, overwrite)
     if p.exists() or p.is_symlink():
         shutil.rmtree(p)
-    p.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PwsError(f"cannot create output bag {p}: {first_line(exc)}") from None
     return p
 
 
@@ -34,6 +37,8 @@ def check_output(path: str | Path, overwrite: bool = False) -> Path:
         bagish = all(e.is_file() and (e.name == "metadata.yaml" or storage_kind(e) is not None or e.suffix.lower() in (".mcap", ".db3", ".zstd"))
                      for e in entries)
         require(bagish, f"output {p} exists and is not a rosbag2 bag directory (it holds other files): refusing to overwrite it")
+    else:
+        require_creatable(p, "output bag")
     return p
 
 

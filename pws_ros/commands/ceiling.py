@@ -67,7 +67,8 @@ def run(args: argparse.Namespace) -> int:
     from ..bridge.config import resolve_path
     from ..core.model import load_model
     from ..replay import ReplayOptions
-    from ..replay.ceiling import advice, ceiling, format_rows
+    from ..replay.ceiling import advice, ceiling, format_rows, stopped
+    from ..replay.interrupt import Interrupted
     from .replay import build_config, input_topics
 
     try:
@@ -76,15 +77,19 @@ def run(args: argparse.Namespace) -> int:
         model = None
         if not args.no_model:
             model = load_model(resolve_path(cfg.model_path, "model file"), device=cfg.device)
-        rows = []
+        rows, signame = [], ""
         for bag in args.bags:
             opts = ReplayOptions(bag=Path(bag), config=cfg, write_output=False, topics=input_topics(args),
                                  max_frames=args.max_frames, quiet=args.quiet, progress=False if args.quiet else None,
                                  label="pws ceiling")
             try:
-                rows += ceiling(opts, model, input_size=args.size)[0]
+                got, top, theirs = ceiling(opts, model, input_size=args.size)
             except PwsError as exc:
                 raise PwsError(f"{bag}: {exc}") from exc
+            rows += got
+            signame = stopped(top) or (stopped(theirs) if theirs is not None else "")
+            if signame:   # Ctrl-C: the table of the frames finished, then the signal's exit status
+                break
     except PwsError as exc:
         print(f"pws ceiling: error: {exc}", file=sys.stderr)
         return 2
@@ -99,4 +104,8 @@ def run(args: argparse.Namespace) -> int:
         print(format_rows(rows))
         for line in tips:
             print(line)
+    if signame:
+        frames = len({(r.recording, r.frame) for r in rows})
+        print(f"pws ceiling: interrupted ({signame}) after {frames} frame(s): the table covers those", file=sys.stderr)
+        return Interrupted(signame).exit_code
     return 0

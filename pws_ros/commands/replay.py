@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ..core.errors import PwsError, require
+from ..core.errors import PwsError, require, require_creatable
 from .common import add_output_args, add_volume_config_args, working_volume_params
 from . import SUMMARIES
 
@@ -115,6 +115,9 @@ def parse_radius(text: str, axes: list[str] | tuple[str, ...]) -> dict[str, floa
         require(linear == (UNITS[axis] == "m"), f"--radius {item!r}: axis {axis} is measured in {UNITS[axis]}, not {unit}")
         v *= _UNIT_SCALE[unit]
         require(math.isfinite(v) and v > 0, f"--radius {item!r}: the radius must be positive and finite")
+        require(axis not in out, f"--radius {text!r}: axis {axis} is given twice")
+        require(axis in axes, f"--radius {item!r}: axis {axis} is not certified (axes: {', '.join(axes)}): "
+                              f"add it to --axes, or leave its radius out")
         out[axis] = v
     return out
 
@@ -125,7 +128,8 @@ def axes_radius_params(args: argparse.Namespace, cfg) -> dict[str, Any]:
     from ..bridge.params import validate_param
 
     params: dict[str, Any] = {}
-    if args.axes:
+    if args.axes is not None:
+        require(bool(str(args.axes).strip(" ,")), "--axes is empty: name the axes to certify, e.g. tz,ry")
         params["axes"] = validate_param("axes", args.axes)
     axes = params.get("axes", cfg.axes)
     if args.radius:
@@ -298,6 +302,10 @@ def options_from_args(args: argparse.Namespace):
     topics = input_topics(args)
     require(args.max_frames is None or args.max_frames >= 1, f"--max-frames must be >= 1, got {args.max_frames}")
     interval = progress_interval(args)
+    if args.report:   # checked before the frames, so that a long run's report is not lost at its end
+        report = Path(args.report)
+        require(not report.exists() or report.is_dir(), f"--report {report}: it exists and is not a folder")
+        require_creatable(report, "--report")
     return ReplayOptions(
         bag=Path(args.bag), config=cfg, out=Path(args.out) if args.out else None, overwrite=args.overwrite,
         write_output=not args.no_output, topics=topics,

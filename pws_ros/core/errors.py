@@ -26,3 +26,18 @@ def read_yaml_file(path, what: str = "file"):
         return yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
         raise PwsError(f"{what} {path} is not valid YAML: {str(exc).splitlines()[0]}") from None
+
+
+def require_creatable(path, what: str) -> None:
+    """PwsError naming ``what`` unless ``path`` can be made (or, an existing folder, written in): the nearest
+    existing folder at or above it is a folder (not a file) that this process may write in. Nothing is created (checked before a long run, so that its
+    outputs are not lost at the end)."""
+    import os
+    from pathlib import Path
+
+    p = Path(path).expanduser().absolute()
+    above = p if p.is_dir() else p.parent   # (an existing folder: written in)
+    while not above.exists() and above != above.parent:
+        above = above.parent
+    require(above.is_dir(), f"{what} {path}: {above} is a file, not a folder")
+    require(os.access(above, os.W_OK | os.X_OK), f"{what} {path}: the folder {above} is not writable")

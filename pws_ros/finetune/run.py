@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..core.errors import PwsError, require
+from ..core.errors import PwsError, require, require_creatable
 from ..core.jsonable import jsonable
 from ..core.model import load_model, save_model, sidecar_path
 from ..core.render import resolve_device
@@ -103,7 +103,9 @@ class FinetuneRun:
         require(not out.exists() or out.is_file(), f"--out {out} is a folder, not a model file")
         require(o.model is None or out.resolve() != Path(o.model).resolve(), f"--out {out} is the input model itself")
         require(o.overwrite or o.resume or not out.exists(), f"output {out} already exists: choose another --out or pass --overwrite")
+        require_creatable(out, "--out")
         work = o.resolved_work_dir()
+        self._made_work = not work.exists()
         if work.exists():
             require(work.is_dir(), f"work folder {work} is a file")
             ours = (work / MANIFEST).exists() or not any(work.iterdir())
@@ -112,7 +114,11 @@ class FinetuneRun:
                                      "start over")
                 require(ours, f"work folder {work} is not a pws finetune work folder: choose another --work-dir")
                 shutil.rmtree(work)
-        work.mkdir(parents=True, exist_ok=True)
+        require_creatable(work, "work folder")
+        try:
+            work.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise PwsError(f"cannot make the work folder {work}: {exc}") from None
 
     def _manifest(self, teacher: Any, sigma: float) -> tuple[dict, str, str]:
         o, c = self.opts, self.opts.config
@@ -141,6 +147,18 @@ class FinetuneRun:
 
     # ---- the run ----
     def run(self) -> FinetuneResult:
+        """The whole run; where it refuses its input before any frame is kept, a work folder it made goes too."""
+        self._made_work = False
+        try:
+            return self._run_all()
+        except PwsError:
+            work = self.opts.resolved_work_dir()
+            kept = [f for f in work.rglob("*") if f.is_file() and f.name not in (MANIFEST, "new_head.pt")] if work.is_dir() else [1]
+            if self._made_work and not kept:   # (a frame cached is kept: --resume continues from it)
+                shutil.rmtree(work, ignore_errors=True)
+            raise
+
+    def _run_all(self) -> FinetuneResult:
         o = self.opts
         o.check()
         sigma = o.noise_sigma()

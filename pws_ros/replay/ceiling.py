@@ -78,11 +78,17 @@ def _radii(result: ReplayResult) -> dict[tuple[int, str], Any]:
     return {(r.index, c.axis): (r, c) for r in result.records for c in r.certificates}
 
 
+def stopped(result: ReplayResult) -> str:
+    """The signal that stopped a run (SIGINT, SIGTERM), or ''."""
+    return str(result.summary.get("interrupted") or "")
+
+
 def ceiling(opts: ReplayOptions, model: LoadedModel | None, *, input_size: tuple[int, int] | None = None,
             run=None) -> tuple[list[CeilingRow], ReplayResult, ReplayResult | None]:
     """Replay ``opts`` (no output bag) with the never-changing classifier of ``input_size`` (default: the
     model's), then with ``model`` (None: the ceiling alone); the rows pair them by frame and axis. With a
     working volume configured, the ceiling of the whole frame (no volume) is measured too and put beside it.
+    A run stopped by a signal (:func:`stopped`) ends it: the rows are those of the frames it finished.
     ``run`` is the replay function (tests)."""
     from . import replay as _replay
 
@@ -91,17 +97,17 @@ def ceiling(opts: ReplayOptions, model: LoadedModel | None, *, input_size: tuple
     require(size is not None, "the ceiling needs the classifier's input size: give a model that declares it, or --size HxW")
     base = replace(opts, write_output=False, report_dir=None)
     top = run(replace(base, model=never_changing_model(size), denoiser=None))
-    require(top.exit_code == 0 and top.records, f"the ceiling run failed: {top.message}")
+    require(stopped(top) or (top.exit_code == 0 and top.records), f"the ceiling run failed: {top.message}")
     got = None
-    if model is not None:
+    if model is not None and not stopped(top):   # (a stopped run: the rows of the frames it finished)
         require(model.input_size is None or tuple(model.input_size) == tuple(size),
                 f"--size {size[1]}x{size[0]} differs from the model's input {model.input_size[1]}x{model.input_size[0]}: "
                 "the ceiling and the model's radii would be about different images")
         got = run(replace(base, model=model))
-        require(got.exit_code == 0, f"the model's run failed: {got.message}")
+        require(got.exit_code == 0 or stopped(got), f"the model's run failed: {got.message}")
     theirs = _radii(got) if got is not None else {}
     whole = {}
-    if opts.config.working_volume is not None:
+    if opts.config.working_volume is not None and not any(stopped(r) for r in (top, got) if r is not None):
         no_volume = opts.config.with_params({f"working_volume.{k}": 0.0 for k in ("near", "far", "x_min", "x_max", "y_min", "y_max", "window")})
         frame = run(replace(base, config=no_volume, model=never_changing_model(size), denoiser=None))
         require(frame.exit_code == 0 and frame.records, f"the whole frame's ceiling run failed: {frame.message}")

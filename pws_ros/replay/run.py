@@ -301,8 +301,9 @@ class Replay:
                     self._out_pending.clear()
                     if self.video is not None:
                         self.video.discard()
-                    self.warn(f"interrupted ({interrupted}): the frame in flight is dropped; closing the bag with the "
-                              f"{len(self.records)} frame(s) done")
+                    self.warn(f"interrupted ({interrupted}): the frame in flight is dropped; "
+                              + ("closing the bag with the " if self.writer is not None else "")
+                              + f"{len(self.records)} frame(s) done")
                 finally:
                     with self.stop.section():
                         if self.bar is not None:
@@ -330,13 +331,20 @@ class Replay:
         if interrupted:
             summary["title"] += f" (interrupted by {interrupted})"
             exit_code = Interrupted(interrupted).exit_code
-            message = f"stopped by {interrupted} after {len(self.records)} frame(s); the output and summary cover those"
+            message = (f"stopped by {interrupted} after {len(self.records)} frame(s); "
+                       + ("the output and summary cover those" if out is not None else "the summary covers those"))
         summary["exit_code"] = exit_code
         if message:
             summary["message"] = message
         result = ReplayResult(self.records, summary, out, exit_code, message, list(self.warnings), output_counts=counts)
         if opts.report_dir is not None:
-            result.report_files = write_report(opts.report_dir, self.records, summary, cfg.axes)
+            try:
+                result.report_files = write_report(opts.report_dir, self.records, summary, cfg.axes)
+            except OSError as exc:   # (checked before the run; a disk that filled up since): the results stay
+                self.warn(f"--report {opts.report_dir}: the report could not be written: {exc}")
+                result.warnings = list(self.warnings)
+                if result.exit_code == 0:
+                    result.exit_code, result.message = 2, f"the report could not be written to {opts.report_dir}"
         return result
 
     def _loop(self, bag: BagReader, inputs: InputTopics) -> RealtimeScheduler | None:

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from ..core.errors import PwsError, require
+from ..core.errors import PwsError, require, require_creatable
 
 VIDEO_CODECS = {".mp4": "mp4v", ".avi": "MJPG"}
 DEFAULT_FPS = 10.0
@@ -41,7 +41,9 @@ class OverlayVideo:
             require(overwrite, f"--video {self.path} already exists: choose another path or pass --overwrite")
             require(self._replaceable(), f"--video {self.path}: --overwrite replaces a video file or a folder of PNG files "
                                          "only, and this is neither")
-        require(self.path.parent.is_dir(), f"--video {self.path}: its folder {self.path.parent} does not exist")
+        require(self.path.parent.is_dir(), f"--video {self.path}: its folder {self.path.parent} "
+                                           + ("is a file" if self.path.parent.exists() else "does not exist"))
+        require_creatable(self.path, "--video")
         name = f".{self.path.stem}.partial{self.path.suffix}" if self.is_video else f".{self.path.name}.partial"
         self.partial = self.path.parent / name
         self.frames = 0
