@@ -11,7 +11,8 @@ Why Bonferroni stays valid: the anchor set is a function of the plan, the bounds
 selection samples only. The ``n`` estimation samples of each anchor are drawn afterwards, independent
 of those, so conditionally on the anchor set the ``K`` Clopper-Pearson bounds at level ``alpha / K``
 fail together with probability at most ``alpha`` (the same argument as Cohen et al.'s separate
-selection and estimation samples).
+selection and estimation samples); the joint first look's split of ``alpha`` over its looks
+(:mod:`.sequential`) rests on the same conditioning.
 """
 from __future__ import annotations
 

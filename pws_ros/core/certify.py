@@ -73,8 +73,10 @@ def certify(cloud: Cloud, intr: CameraIntrinsics, model: LoadedModel, axis: str,
     the image ``x(a)`` of every motion ``a`` in ``[-cert.radius, cert.radius]`` along ``axis``, where ``x(a)``
     is the image the imaging model (docs/imaging.md) makes from ``cloud`` moved by ``a``. It rests on sound
     per-segment bounds of the plan's grid (every image of a segment lies within ``D_i`` of an anchor frame)
-    and one-sided Clopper-Pearson bounds at Bonferroni level ``alpha / K`` over the ``K`` anchors, placed
-    before any estimation sample is drawn (``abstain``: the top class is not certified even at 0).
+    and one-sided Clopper-Pearson bounds whose levels sum to at most ``alpha``: ``alpha / K`` over the ``K``
+    anchors (Bonferroni), or the anchors' joint first look and its individual looks (:mod:`.sequential`), all
+    placed and planned before any estimation sample is drawn (``abstain``: the top class is not certified
+    even at 0).
 
     ``intr`` is the input camera; frames are made by the imaging model of ``config.imaging`` (or the given
     ``imaging``). ``cloud`` is the cloud that is rendered: the entire cloud for ``pws`` (paper imaging only),

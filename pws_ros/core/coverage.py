@@ -1,7 +1,8 @@
 """Coverage rules: which segments of the plan the p_A bounds cover, hence the certified radius.
 
 Every rule reads the same two things: the Cohen radii ``R`` of the p_A lower bounds it estimated (one
-per *estimation frame*, all at the Bonferroni level ``alpha / K`` with ``K`` = the number of those frames)
+per *estimation frame*: at the Bonferroni level ``alpha / K`` with ``K`` = the number of those frames, or for the
+adaptive anchors the levels of their looks, :mod:`.sequential`)
 and sound per-segment distance bounds of the imaging model (:class:`.surfel_bounds.HullValues`,
 :class:`.bounds.SegmentValues`). Segment ``i`` joins grid points ``i`` and ``i + 1``; the centre
 ``alphas[centre]`` is 0. A rule returns which segments it covers; the radius is the symmetric run of

@@ -75,7 +75,7 @@ class Certificate:
             return f"{head} ({self.reason})"
         s = (f"{head}; label {self.label} ({self.class_name}), certified radius {self.radius:g} {self.unit}, "
              f"min p_A {self.min_p_a_lower:.4f}, N={self.num_partitions}, n0={self.n0}, n={self.n}, "
-             f"alpha={self.alpha:g}/{self.num_bounds}, sigma={self.sigma:g}, calls={self.classifier_calls}, "
+             f"alpha={self.alpha:g} over {self.num_bounds} bound(s), sigma={self.sigma:g}, calls={self.classifier_calls}, "
              f"{self.timings.get('total', float('nan')):.2f}s")
         return s + (f" — {self.reason}" if self.reason else "")
 

@@ -11,7 +11,8 @@ The method on one screen
   probability ``1 - alpha'``. With ``p_B = 1 - p_A`` the certified L2 radius is
   ``sigma / 2 (Phi^-1(p_A) - Phi^-1(p_B)) = sigma Phi^-1(p_A)`` (:func:`cohen_radius`), 0 (abstain)
   when ``p_A_lower <= 1/2``.
-* A fixed sample size is used (no early stopping or repeated looks at the data).
+* Here a bound's sample size is fixed (no early stopping); the anchors' estimation in several looks,
+  each bound at a level fixed in advance, is :mod:`.sequential`.
 
 Bonferroni rule: when a decision rests on ``m`` bounds (one per partition, or per anchor), every
 one of them is computed at ``alpha' = bonferroni(alpha, m) = alpha / m``, so the whole decision
