@@ -79,3 +79,26 @@ def test_ctrl_c_while_the_command_loads_is_a_clean_exit_130(monkeypatch, capsys)
     monkeypatch.setattr(cli, "build_parser", interrupted)
     assert cli.main(["replay", "bags/demo"]) == 130
     assert capsys.readouterr().err == "pws replay: interrupted\n"
+
+
+def test_every_command_and_option_explains_itself():
+    """`pws COMMAND [SUB] --help` of every command and subcommand opens with a description, and every option
+    has a help text (the README says each command's help is complete)."""
+    import argparse
+
+    from pws_ros.cli import build_parser
+
+    missing = []
+
+    def walk(parser: argparse.ArgumentParser, name: str) -> None:
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub_name, sub in action.choices.items():
+                    if not (sub.description or "").strip():
+                        missing.append(f"{name} {sub_name}: no description")
+                    walk(sub, f"{name} {sub_name}")
+            elif not isinstance(action, (argparse._HelpAction, argparse._VersionAction)) and not (action.help or "").strip():
+                missing.append(f"{name} {'/'.join(action.option_strings) or action.dest}: no help")
+
+    walk(build_parser("*"), "pws")
+    assert not missing, missing

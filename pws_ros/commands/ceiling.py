@@ -49,17 +49,22 @@ def register(subparsers) -> None:
     c.add_argument("--config", default=None, help="ROS 2 parameter file (default: config/pws.yaml if found, else built-in defaults)")
     c.add_argument("--axes", default=None, help="comma-separated axes (default: config axes, tz,ry)")
     c.add_argument("--radius", default=None, help="requested radius per axis, e.g. tz=0.01,ry=0.25deg")
-    for name, kind, text in (("--sigma", float, "pixel noise sigma"), ("--n0", int, "selection samples"),
-                             ("--n", int, "estimation samples per anchor"), ("--alpha", float, "risk of a frame"),
-                             ("--n-first", int, "samples of the anchors' joint first look (0: n per anchor at alpha / K)"),
-                             ("--anchors", int, "estimation budget per axis in anchors of n samples"), ("--render-factor", int, "surfel render factor"),
-                             ("--seed", int, "random seed"), ("--batch-size", int, "images per classifier call")):
-        c.add_argument(name, type=kind, default=None, help=f"{text} (default: config)")
+    for name, kind, text in (("--sigma", float, "pixel noise sigma (default: config sigma, 0.5)"),
+                             ("--n0", int, "selection samples (default: config n0, 64)"),
+                             ("--n", int, "estimation samples per anchor (default: config n, 256)"),
+                             ("--alpha", float, "risk of a frame (default: config alpha, 0.01)"),
+                             ("--n-first", int, "samples of the anchors' joint first look (0: n per anchor at alpha / K; "
+                                                "default: config n_first, 64)"),
+                             ("--anchors", int, "estimation budget per axis in anchors of n samples (default: config num_anchors, 24)"),
+                             ("--render-factor", int, "surfel render factor (default: config render_factor, 2)"),
+                             ("--seed", int, "random seed (default: config seed, 0)"),
+                             ("--batch-size", int, "images per classifier call, the most (default: config batch_size, 256)")):
+        c.add_argument(name, type=kind, default=None, help=text)
     add_volume_config_args(c)
-    c.add_argument("--device", default=None, help="cpu or cuda:N")
+    c.add_argument("--device", default=None, help="cpu or cuda:N (default: config device, cpu)")
     i = p.add_argument_group("input (as in pws replay)")
     for name in ("cloud", "depth", "color", "info", "depth-info"):
-        i.add_argument(f"--{name}-topic", default=None, help=f"the {name.replace('-', ' ')} topic")
+        i.add_argument(f"--{name}-topic", default=None, help=f"the {name.replace('-', ' ')} topic (default: found in the bag, as pws replay does)")
     p.set_defaults(func=run, truth_topic=None, classes=None, denoiser=None)
 
 

@@ -122,6 +122,8 @@ def register(subparsers) -> None:
     la.set_defaults(func=run)
 
     t = sub.add_parser("tum", help="a TUM-format RGB-D sequence -> a recording", epilog=TUM_EPILOG,
+                       description="pws import tum: a TUM-format RGB-D sequence (the TUM RGB-D benchmark's folders: rgb/,\n"
+                                   "depth/ and their lists) -> a recording pws replay and pws finetune read",
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     t.add_argument("src", type=Path, help="TUM-format folder (rgb/, depth/, associations.txt or rgb.txt + depth.txt)")
     t.add_argument("--out", type=Path, required=True, help="the recording to write (must not exist)")

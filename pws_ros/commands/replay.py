@@ -191,17 +191,17 @@ def register(subparsers) -> None:
                    help="pws_of (one-frame cloud, default), pws_l (Lipschitz), pws (the entire scene cloud: dense_cloud_path, or "
                         "regenerated from the ground truth of a pws sim recording), cms (baseline)")
     c.add_argument("--coverage", default=None, choices=("pairwise", "paper", "anchors"), help="coverage rule (default: config coverage, anchors)")
-    c.add_argument("--n0", type=int, default=None, help="noise samples selecting the top class")
-    c.add_argument("--n", type=int, default=None, help="noise samples per bound estimating p_A, the most")
+    c.add_argument("--n0", type=int, default=None, help="noise samples selecting the top class (default: config n0, 64)")
+    c.add_argument("--n", type=int, default=None, help="noise samples per bound estimating p_A, the most (default: config n, 256)")
     c.add_argument("--n-first", type=int, default=None, metavar="M",
                    help="samples of the anchors' joint first look (default: config n_first, 64; 0: n samples each at alpha / K)")
-    c.add_argument("--sigma", type=float, default=None, help="pixel noise sigma of the smoothed classifier (images in [0, 1])")
+    c.add_argument("--sigma", type=float, default=None, help="pixel noise sigma of the smoothed classifier (images in [0, 1]; default: config sigma, 0.5)")
     c.add_argument("--alpha", type=float, default=None,
                    help="risk of each frame's certificate, all its axes together (split over the axes, then by Bonferroni "
                         "over every bound; default: config alpha, 0.01)")
-    c.add_argument("--seed", type=int, default=None, help="random seed (same bag + seed = same certificates)")
-    c.add_argument("--device", default=None, help="cpu or cuda:N (falls back to cpu with a warning)")
-    c.add_argument("--batch-size", type=int, default=None, help="images per classifier call")
+    c.add_argument("--seed", type=int, default=None, help="random seed (same bag + seed = same certificates; default: config seed, 0)")
+    c.add_argument("--device", default=None, help="cpu or cuda:N (falls back to cpu with a warning; default: config device, cpu)")
+    c.add_argument("--batch-size", type=int, default=None, help="images per classifier call, the most (default: config batch_size, 256)")
     c.add_argument("--max-partitions", type=int, default=None,
                    help="the cap on the cost per frame: plans needing more partitions are made coarser (fewer frames, "
                         "looser bounds, maybe a smaller certified radius), never refused (default: config max_partitions, 257)")

@@ -15,32 +15,34 @@ def register(subparsers) -> None:
                             "The seeded procedural world of pws_ros.sim (one object of one of 12 classes in a textured room).",
                             ("record", "view", "classes"))
 
-    r = sub.add_parser("record", help="write views as a rosbag2 bag (RGB, CameraInfo, aligned depth, organized cloud unless --no-points, ground truth)")
+    text = "write views as a rosbag2 bag (RGB, CameraInfo, aligned depth, organized cloud unless --no-points, ground truth)"
+    r = sub.add_parser("record", help=text, description=f"pws sim record: {text}.")
     r.add_argument("--out", required=True, help="bag directory to create (must not exist)")
     r.add_argument("--frames", type=int, default=36, help="number of frames (default 36)")
     r.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="rosbag2 storage (default mcap, zstd chunks)")
     r.add_argument("--seed", type=int, default=0, help="first scene seed; scenes seed, seed+1, ... (class = scene seed %% 12)")
     r.add_argument("--views-per-scene", type=int, default=3, help="consecutive frames per scene (default 3)")
-    r.add_argument("--width", type=int, default=160)
-    r.add_argument("--height", type=int, default=90)
+    r.add_argument("--width", type=int, default=160, help="image width in pixels (default 160)")
+    r.add_argument("--height", type=int, default=90, help="image height in pixels (default 90)")
     r.add_argument("--rate", type=float, default=10.0, help="frame rate of the stamps in Hz (default 10)")
-    r.add_argument("--max-depth", type=float, default=None, help="depth beyond this (m) is invalid (0 / NaN), like a sensor's range")
+    r.add_argument("--max-depth", type=float, default=None, help="depth beyond this (m) is invalid (0 / NaN), like a sensor's range (default: none)")
     r.add_argument("--no-compression", action="store_true", help="MCAP without zstd chunk compression")
     r.add_argument("--no-points", action="store_true",
                    help="leave out the organized PointCloud2 (RGB-D + CameraInfo + ground truth only; 16 B a pixel less)")
     r.set_defaults(func=run)
 
-    v = sub.add_parser("view", help="export one view: rgb.png, depth.png (16-bit mm), camera.yaml, cloud.npz, dense_cloud.npz, view.json")
+    text = "export one view: rgb.png, depth.png (16-bit mm), camera.yaml, cloud.npz, dense_cloud.npz, view.json"
+    v = sub.add_parser("view", help=text, description=f"pws sim view: {text}.")
     v.add_argument("--seed", type=int, required=True, help="scene seed (class = seed %% 12)")
-    v.add_argument("--view", type=int, default=0, help="canonical view index 0..23 (3 rings x 8 azimuths)")
+    v.add_argument("--view", type=int, default=0, help="canonical view index 0..23 (3 rings x 8 azimuths; default 0)")
     v.add_argument("--out-dir", required=True, help="output folder (created if missing)")
-    v.add_argument("--width", type=int, default=160)
-    v.add_argument("--height", type=int, default=90)
-    v.add_argument("--samples-per-pixel", type=float, default=6.0, help="dense cloud density (samples per pixel footprint)")
+    v.add_argument("--width", type=int, default=160, help="image width in pixels (default 160)")
+    v.add_argument("--height", type=int, default=90, help="image height in pixels (default 90)")
+    v.add_argument("--samples-per-pixel", type=float, default=6.0, help="dense cloud density (samples per pixel footprint; default 6)")
     v.add_argument("--no-dense", action="store_true", help="skip the dense cloud")
     v.set_defaults(func=run)
 
-    c = sub.add_parser("classes", help="print the class names, one per line")
+    c = sub.add_parser("classes", help="print the class names, one per line", description="pws sim classes: print the class names, one per line.")
     c.set_defaults(func=run)
 
 

@@ -12,9 +12,9 @@ from .common import add_command_group
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", choices=("full", "tiny"), default="full", help="full: the shipped recipe (about 5 min on 2 idle CPU cores, longer on a busy machine); tiny: seconds, for tests")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--workers", type=int, default=2, help="processes generating training views")
-    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    p.add_argument("--seed", type=int, default=0, help="seed of the training views, initial weights and noise (default 0)")
+    p.add_argument("--workers", type=int, default=2, help="processes generating training views (default 2)")
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
     p.add_argument("--cache-dir", default=None, help="cache of generated views (default $PWS_SIM_CACHE or <tmp>/pws_sim_cache; '' disables)")
 
 
@@ -22,18 +22,19 @@ def register(subparsers) -> None:
     sub = add_command_group(subparsers, "train", SUMMARIES["train"],
                             "Seeded, CPU-only training on views of pws_ros.sim.", ("all", "classifier", "denoiser"))
 
-    a = sub.add_parser("all", help="classifiers for sigma 0.25 and 0.5, the sigma-0.5 denoiser, classes.txt, training_report.json")
+    text = "classifiers for sigma 0.25 and 0.5, the sigma-0.5 denoiser, classes.txt, training_report.json"
+    a = sub.add_parser("all", help=text, description=f"pws train all: {text}.")
     a.add_argument("--out", required=True, help="output folder (e.g. bags/models)")
-    a.add_argument("--no-denoiser", action="store_true")
+    a.add_argument("--no-denoiser", action="store_true", help="the classifiers only")
     _common(a)
     a.set_defaults(func=run)
 
     for name, what, out in (("classifier", "one classifier trained with Gaussian noise of --sigma",
                              "model file to write (.pt, TorchScript + pws.json + <stem>.classes.txt)"),
                             ("denoiser", "a DnCNN-like denoiser for --sigma", "denoiser file to write (.pt, TorchScript)")):
-        one = sub.add_parser(name, help=what)
+        one = sub.add_parser(name, help=what, description=f"pws train {name}: {what}.")
         one.add_argument("--out", required=True, help=out)
-        one.add_argument("--sigma", type=float, default=0.5)
+        one.add_argument("--sigma", type=float, default=0.5, help="Gaussian noise sigma of the training (images in [0, 1]; default 0.5)")
         one.add_argument("--epochs", type=int, default=None, help="default: the preset's")
         _common(one)
         one.set_defaults(func=run)
