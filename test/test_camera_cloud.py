@@ -295,3 +295,12 @@ def test_scaled_camera_and_cloud_agree():
     frame = render(cloud, small, "tx", [0.0])[0]
     np.testing.assert_array_equal(frame, block.astype(np.float32) / np.float32(255))
     assert math.isclose(small.cx, 9.5) and math.isclose(small.cy, 7.0)
+
+
+def test_a_calibration_yaml_without_its_matrix_names_the_matrix(tmp_path):
+    """camera_calibration's format without camera_matrix: the message names that field, not the flat format's
+    'width' (which a camera_calibration user never wrote)."""
+    path = tmp_path / "camera.yaml"
+    path.write_text("image_width: 640\nimage_height: 480\n")
+    with pytest.raises(PwsError, match="missing field 'camera_matrix'"):
+        CameraIntrinsics.from_yaml(path)

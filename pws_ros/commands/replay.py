@@ -161,7 +161,8 @@ def register(subparsers) -> None:
     p.add_argument("bag", help="rosbag2 bag directory, or a bare .mcap / .db3 file")
     o = p.add_argument_group("output")
     o.add_argument("--out", default=None, help="output bag directory (default: <bag>_pws next to the bag); must not exist unless --overwrite")
-    o.add_argument("--overwrite", action="store_true", help="replace OUT if it is an existing bag directory (never any other folder)")
+    o.add_argument("--overwrite", action="store_true", help="replace OUT if it is an existing bag directory (never any other folder), and a --video file "
+                   "or folder of PNGs")
     o.add_argument("--no-output", action="store_true", help="write no bag: only the summary (and --report)")
     o.add_argument("--copy-inputs", action="store_true", help="copy the input topics (and the ground truth) into OUT unchanged")
     o.add_argument("--write-cloud", action="store_true", help="write the one-frame cloud on 'cloud' (+ 'cloud/camera_info')")
@@ -172,7 +173,8 @@ def register(subparsers) -> None:
     o.add_argument("--namespace", default="", help="prefix of the output topics, as the nodes' namespace (default: none, /certification ...)")
     o.add_argument("--no-compression", action="store_true", help="MCAP chunks without zstd")
     o.add_argument("--report", default=None, metavar="DIR", help="write DIR/frames.csv (per frame and axis), DIR/summary.json, "
-                   "DIR/certified_accuracy_vs_radius.png and DIR/frames.png (radius and latency over time)")
+                   "DIR/certified_accuracy_vs_radius.png and DIR/frames.png (radius and latency over time); in an existing "
+                   "folder, files of these names are replaced")
     o.add_argument("--video", default=None, metavar="PATH",
                    help="write the overlay picture of every frame (the view, label, p_A and a bar per axis; as the nodes' "
                         "certification/overlay) to PATH: a .mp4 or .avi video, or a folder (no suffix) of PNGs")

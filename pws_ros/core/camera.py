@@ -71,6 +71,8 @@ class CameraIntrinsics:
         """From a camera_calibration YAML dict (``image_width``, ``camera_matrix.data``) or a
         flat dict (``width, height, fx, fy, cx, cy``)."""
         require(isinstance(data, dict), f"{source}: expected a mapping")
+        require("image_width" not in data or "camera_matrix" in data, f"{source}: missing field 'camera_matrix' (a "
+                "camera_calibration YAML has image_width, image_height and camera_matrix.data)")
         try:
             if "camera_matrix" in data:
                 k = np.asarray(data["camera_matrix"]["data"], dtype=float).reshape(-1)
