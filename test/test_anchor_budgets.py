@@ -342,3 +342,26 @@ def test_a_weak_frame_estimates_the_centre_alone_with_the_whole_budget():
     assert cert.classifier_calls == cfg.n0 + cfg.num_anchors * cfg.n
     # its one bound at level alpha, recomputed from the votes it records
     assert np.allclose(cert.p_a_lower, recomputed_p_a_lower(cert), rtol=1e-9, atol=1e-12)
+
+
+def test_progress_ends_at_the_images_the_classifier_saw():
+    """The anchors' progress ends at the classifier calls made (a joint first look that certifies needs far fewer
+    than the n0 + num_anchors * n the plan allowed: a bar at "6208/6208" after 448 calls, before)."""
+    from pws_ros.core.anchor_geometry import _FixedGeometry
+    from pws_ros.core.anchored import _certify_anchored
+    from pws_ros.core.surfel_bounds import HullValues
+
+    F, h, w = 41, 4, 4
+    alphas = np.linspace(-1.0, 1.0, F)
+    alphas[F // 2] = 0.0
+    f = np.full((F, h, w, 3), 0.5, np.float32)
+    f[:, 1, 1, 0] = (0.5 + 0.01 * np.arange(F)).astype(np.float32)
+    hulls = HullValues(alphas, np.minimum(f[:-1], f[1:]), np.maximum(f[:-1], f[1:]), np.zeros((F - 1, h, w), bool))
+    plan = Plan("pws_of", "tx", 1.0, float(np.diff(alphas).max()), F, alphas, "m", {"imaging": "surfel"})
+    cfg = CertifyConfig(sigma=0.5, n0=64, n=256, alpha=0.01, num_anchors=8, seed=1).validate()
+    ticks = []
+    cert = _certify_anchored(_FixedGeometry(f, hulls), plan, AdaptiveAnchorsRule(cfg.num_anchors), never_changing_model((h, w)),
+                             cfg, None, lambda done, total: ticks.append((done, total)), "pws_of", {}, 0.0)
+    assert cert.certified and cert.classifier_calls < cfg.n0 + cfg.num_anchors * cfg.n   # the case this is about
+    assert ticks[0] == (cfg.n0, cfg.n0 + cfg.num_anchors * cfg.n)
+    assert ticks[-1] == (cert.classifier_calls, cert.classifier_calls)

@@ -278,8 +278,8 @@ def _certify_anchored(geometry, plan: Plan, rule: AdaptiveAnchorsRule, model: Lo
     # left short, the risk split over every look
     est = estimate(votes_of, K, looks, config.alpha, go_on, budget=max(budget_samples, K * looks.sizes[0]), chunk=int(config.n))
     p_lower, used = est.p_lower, est.samples
-    if progress is not None:
-        progress(total_work, total_work)
+    if progress is not None:   # the images the classifier saw: the most the plan allowed, or fewer (looks not made)
+        progress(int(sc.calls), int(sc.calls))
     t1 = time.perf_counter()
     R = cohen_radii(p_lower, config.sigma)
     dist.complete(D2, est_idx, _square(R))
