@@ -11,8 +11,6 @@ of :func:`.motion.split_events` inside it.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 import torch
 
@@ -21,9 +19,6 @@ from .errors import require
 from .framing import SAMPLE_JITTER, SURFEL_OVERLAP
 from .motion import TRANSLATIONS, depth, project, split_events
 from .surfel_cover import union_of
-
-if TYPE_CHECKING:
-    from .surfel import SurfelRenderer
 
 _CORNER_SIGNS = ((-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0))
 # covered_pairs: the most pixel-surfel pairs one call may hold (a frame of a real camera holds a few
@@ -188,7 +183,7 @@ class FootprintSweep:
     segments. The bounds (:mod:`.surfel_bounds`) build on it; the renderer uses it to leave out the
     surfels no motion of a range can show (:meth:`maybe_visible`)."""
 
-    def __init__(self, r: SurfelRenderer, lo: float, hi: float):
+    def __init__(self, r, lo: float, hi: float):   # r: the .surfel.SurfelRenderer (not imported: it imports this module)
         self.r = r
         self.P = r.num_points
         corners = r.corners_np.reshape(-1, 3)
