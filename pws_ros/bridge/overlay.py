@@ -22,7 +22,7 @@ Layout (fixed, so that a viewer, or a test, can read the bars from the pixels; d
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 

@@ -207,7 +207,7 @@ def _describe(s: dict) -> str:
     lines = [head]
     labels = Counter(s.get("labels", {}))
     if labels:
-        lines.append(f"labels on /pws/ground_truth: " + ", ".join(f"{k} {v}" for k, v in sorted(labels.items())))
+        lines.append("labels on /pws/ground_truth: " + ", ".join(f"{k} {v}" for k, v in sorted(labels.items())))
     if "intrinsics" in s:
         lines.append(f"intrinsics: {s['intrinsics']}; {s['bytes'] / 1e6:.1f} MB")
     if s.get("left_out"):

@@ -9,9 +9,8 @@ from __future__ import annotations
 
 import math
 import os
-import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch

@@ -31,7 +31,7 @@ from contextlib import contextmanager
 from typing import Any, Iterator
 
 from ..bridge.inputs import RawFrame, convert
-from ..core.errors import PwsError, require
+from ..core.errors import require
 from .options import ReplayOptions, ReplayResult
 from .run import Replay
 
