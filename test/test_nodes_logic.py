@@ -83,6 +83,7 @@ class Context:
         self.logs = []
         self.timers = []
         self.qos = {}
+        self.pub_qos, self.sub_qos = {}, {}   # by topic: what each publisher and subscription of this node asked for
 
     def log(self, level, message):
         self.logs.append((level, message))
@@ -94,11 +95,13 @@ class Context:
         return topic if topic.startswith("/") else "/" + topic
 
     def publisher(self, msg_type, topic, *, kind=None, depth=None):
-        self.qos[self.resolve(topic)] = (kind or self.config.output_qos, depth or self.config.output_qos_depth)
+        self.qos[self.resolve(topic)] = self.pub_qos[self.resolve(topic)] = (kind or self.config.output_qos,
+                                                                             depth or self.config.output_qos_depth)
         return _Pub(self.bus, self.resolve(topic))
 
     def subscription(self, msg_type, topic, callback, *, kind=None, depth=None):
-        self.qos[self.resolve(topic)] = (kind or self.config.input_qos, depth or self.config.input_qos_depth)
+        self.qos[self.resolve(topic)] = self.sub_qos[self.resolve(topic)] = (kind or self.config.input_qos,
+                                                                             depth or self.config.input_qos_depth)
         self.bus.subs[self.resolve(topic)].append(callback)
 
     def timer(self, period, callback):
@@ -256,6 +259,26 @@ def four_nodes(bus, model_path, **extra):
     nodes = [CloudListenerNode(ctxs["cloud_listener"]), PartitionPlannerNode(ctxs["partition_planner"]),
              ProjectorNode(ctxs["projector"]), CertifierNode(ctxs["certifier"])]
     return ctxs, nodes
+
+
+@pytest.mark.parametrize("output_qos", ["reliable", "best_effort", "sensor_data", "system_default"])
+def test_four_processes_pair_every_topic_with_a_compatible_qos(model_path, output_qos):
+    """Every topic one of the four nodes publishes and another reads is read with a reliability its writer offers
+    (a reliable reader never matches a best-effort writer: with output_qos best_effort the certifier read 'plan'
+    reliably, and no frame was ever certified)."""
+    reliable = {"reliable": True, "system_default": True, "best_effort": False, "sensor_data": False}
+    bus = Bus()
+    try:
+        ctxs, nodes = four_nodes(bus, model_path, output_qos=output_qos)
+        pubs = {t: (n, q) for n, c in ctxs.items() for t, q in c.pub_qos.items()}
+        pairs = [(t, pubs[t], n, q) for n, c in ctxs.items() for t, q in c.sub_qos.items() if t in pubs]
+        assert {t for t, *_ in pairs} >= {"/cloud", "/plan", "/plan/cloud", "/rendered/frames", "/rendered/bounds"}
+        bad = [f"{t}: {pn} writes {pq[0]}, {n} reads {q[0]}" for t, (pn, pq), n, q in pairs if reliable[q[0]] and not reliable[pq[0]]]
+        assert not bad, bad
+    finally:
+        for node in nodes:
+            node.close()
+        bus.close()
 
 
 @pytest.mark.parametrize("coverage", ["pairwise", "anchors"])

@@ -176,9 +176,10 @@ PARAMS: tuple[ParamSpec, ...] = (
               "(its axes share the frame's time in turn); 1 = one after another", range=(0, 64), nodes=("pipeline",)),
     ParamSpec("audit_every", 0, "self-audit every k-th frame: re-render poses inside every segment of each certified axis "
               "(audit_poses per segment) and check every bound the certificate used; a violation turns that axis to "
-              "ERROR; 0 = off", range=(0, 1_000_000), nodes=_CERT),
+              "ERROR; 0 = off (the pipeline node: the four-process certifier has no cloud to re-render)", range=(0, 1_000_000),
+              nodes=("pipeline",)),
     ParamSpec("audit_poses", 8, "poses re-rendered per segment by the self-audit (ends and their float neighbours included)",
-              range=(2, 100_000), nodes=_CERT),
+              range=(2, 100_000), nodes=("pipeline",)),
     ParamSpec("cms_sigma", 0.0, "motion-space sigma of the cms baseline; 0 = the per-axis default", range=(0.0, 10.0), nodes=_CERT),
     # -- inputs --
     ParamSpec("input_mode", "auto", "input: pointcloud2, rgbd (depth + colour + CameraInfo), or auto (the first that arrives)",
@@ -200,7 +201,8 @@ PARAMS: tuple[ParamSpec, ...] = (
               "sync_tolerance_s but within this is matched when neither has a nearer partner (as message_filters' ApproximateTime), "
               "or at the end of a recording, and logged as a WARN with its skew (the cloud's geometry and colour are then that far "
               "apart in time); 0 = only sync_tolerance_s", range=(0.0, 10.0), nodes=_IN, unit="s"),
-    ParamSpec("sync_queue_size", 10, "messages buffered per input stream for stamp matching", range=(1, 1000), read_only=True, nodes=_IN),
+    ParamSpec("sync_queue_size", 10, "messages buffered per input stream for stamp matching", range=(1, 1000), read_only=True,
+              nodes=_IN + ("partition_planner",)),
     ParamSpec("depth_fill", "row", "invalid depth (0, NaN, out of range) where the camera measured a colour: row = each such "
               "pixel gets the depth of the farther of its nearest valid neighbours in its row (then column), so the frame has "
               "no black holes and a filled point never occludes a measured one; the certificate is then about the cloud "
@@ -225,15 +227,17 @@ PARAMS: tuple[ParamSpec, ...] = (
               range=(0.0, 3600.0), nodes=_IN, unit="s"),
     # -- QoS --
     ParamSpec("input_qos", "sensor_data", "QoS of camera inputs: sensor_data (best effort, matches every driver), reliable, best_effort, system_default",
-              choices=QOS_PROFILES, read_only=True, nodes=_ALL),
-    ParamSpec("input_qos_depth", 5, "history depth of input subscriptions", range=(1, 10000), read_only=True, nodes=_ALL),
+              choices=QOS_PROFILES, read_only=True, nodes=_IN),
+    ParamSpec("input_qos_depth", 5, "history depth of input subscriptions", range=(1, 10000), read_only=True, nodes=_IN),
     ParamSpec("output_qos", "reliable", "QoS of results (certification, plans, clouds)", choices=QOS_PROFILES, read_only=True, nodes=_ALL),
     ParamSpec("output_qos_depth", 10, "history depth of result publishers", range=(1, 10000), read_only=True, nodes=_ALL),
     ParamSpec("frames_qos_depth", 4096, "history depth (reliable) of rendered/frames in the four-process mode; must hold one burst",
               range=(1, 1_000_000), read_only=True, nodes=("projector", "certifier")),
     # -- outputs --
-    ParamSpec("publish_cloud", True, "publish the one-frame cloud on 'cloud' (PointCloud2 xyz + rgb, source header)", nodes=_IN),
-    ParamSpec("publish_poses", True, "publish each plan's camera poses on 'plan/poses/<axis>' (PoseArray)", nodes=_PLAN),
+    ParamSpec("publish_cloud", True, "publish the one-frame cloud on 'cloud' (PointCloud2 xyz + rgb, source header; the "
+              "cloud_listener always does: the planner reads it)", nodes=("pipeline",)),
+    ParamSpec("publish_poses", True, "publish each plan's camera poses on 'plan/poses/<axis>' (PoseArray)",
+              nodes=("partition_planner", "pipeline")),
     ParamSpec("publish_markers", True, "publish 'certification/markers' (MarkerArray text for RViz/Foxglove)", nodes=_CERT),
     ParamSpec("publish_preview", True, "publish a decimated 'rendered/preview' Image (rgb8) for humans", nodes=("projector", "pipeline")),
     ParamSpec("preview_every", 25, "publish every k-th rendered frame of a plan on rendered/preview (the alpha = 0 frame always)",

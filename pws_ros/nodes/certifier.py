@@ -58,12 +58,14 @@ class CertifierNode(WorkerNode):
         self.overlay = OverlayOutput(ctx)
         self.worker = Worker("pws-certifier", self._process, ctx.log)
         frames_depth = cfg.frames_qos_depth
-        def sub(msg_type: Any, topic: str, fn: Any, depth: int) -> Any:
+        def sub(msg_type: Any, topic: str, fn: Any, depth: int, kind: str = "reliable") -> Any:
             cb = guarded(ctx, self.throttle, topic, fn, on_bad=lambda _m, _t: self._count_bad())
-            return ctx.subscription(msg_type, topic, cb, kind="reliable", depth=depth)
+            return ctx.subscription(msg_type, topic, cb, kind=kind, depth=depth)
 
         self.subs = [
-            sub(T.String, "plan", self._on_plan, max(10, cfg.output_qos_depth)),
+            # the planner publishes plan with output_qos (as the projector reads it): a reliable reader of a best-effort
+            # writer would never match (an incompatible-QoS warning and no certification)
+            sub(T.String, "plan", self._on_plan, max(10, cfg.output_qos_depth), kind=cfg.output_qos),
             sub(T.Image, "rendered/frames", self._on_frame, frames_depth),
             sub(T.Float64MultiArray, "rendered/bounds", self._on_bounds, max(10, cfg.output_qos_depth)),
             sub(T.String, "rendered/errors", self._on_error, max(10, cfg.output_qos_depth)),
