@@ -9,7 +9,9 @@ process (frames and bounds handed over in memory).
 
 Arguments: config_file, namespace, use_sim_time, log_level, workers, and the input topic remaps points,
 depth, color, camera_info (each remaps the default input topic of config/pws.yaml, which are the
-RealSense ROS 2 wrapper's names and those of the shipped demo recording bags/demo).
+RealSense ROS 2 wrapper's names and those of the shipped demo recording bags/demo) and
+depth_camera_info (the depth stream's CameraInfo; by default the camera_info beside ``depth``, so that
+remapping depth alone moves it too).
 
 workers:=N (default 1: one node named ``pipeline``) starts N pipeline processes ``pipeline_0`` ..
 ``pipeline_<N-1>`` with num_workers N and worker_index i: each certifies the frames whose stamp is
@@ -33,7 +35,8 @@ INPUT_REMAPS = {
 }
 
 
-def launch_arguments():
+def launch_arguments(workers: bool = True):
+    """The launch arguments; ``workers`` only where the launch file starts pipelines."""
     args = [
         DeclareLaunchArgument("config_file", default_value=PathJoinSubstitution([FindPackageShare("pws_ros"), "config", "pws.yaml"]),
                               description="ROS 2 parameter file (see config/pws.yaml for every parameter)"),
@@ -41,16 +44,29 @@ def launch_arguments():
         DeclareLaunchArgument("use_sim_time", default_value="false",
                               description="use /clock (set true with `ros2 bag play --clock`)"),
         DeclareLaunchArgument("log_level", default_value="info", description="ROS log level"),
-        DeclareLaunchArgument("workers", default_value="1",
-                              description="pipeline processes sharing the input stream (each certifies the stamps assigned to it)"),
     ]
+    if workers:
+        args.append(DeclareLaunchArgument("workers", default_value="1",
+                                          description="pipeline processes sharing the input stream (each certifies the stamps assigned to it)"))
     for default, (arg, what) in INPUT_REMAPS.items():
         args.append(DeclareLaunchArgument(arg, default_value=default, description=f"input topic: {what}"))
+    args.append(DeclareLaunchArgument("depth_camera_info", default_value="",
+                                      description="input topic: CameraInfo of the depth stream (its intrinsics are "
+                                                  "checked against the colour camera's); empty: the camera_info beside depth"))
     return args
 
 
-def input_remappings():
-    return [(default, LaunchConfiguration(arg)) for default, (arg, _) in INPUT_REMAPS.items()]
+# the config's depth_camera_info_topic 'auto' names the camera_info beside depth_topic: remapped with depth
+DEPTH_INFO = "/camera/aligned_depth_to_color/camera_info"
+
+
+def input_remappings(context):
+    """The input remaps, performed in ``context``: each default input topic to its argument, and the depth
+    CameraInfo to ``depth_camera_info``, or to the camera_info beside ``depth``."""
+    out = [(default, LaunchConfiguration(arg).perform(context)) for default, (arg, _) in INPUT_REMAPS.items()]
+    depth = LaunchConfiguration("depth").perform(context)
+    info = LaunchConfiguration("depth_camera_info").perform(context) or f"{depth.rpartition('/')[0]}/camera_info"
+    return out + [(DEPTH_INFO, info)]
 
 
 def common_parameters():
@@ -58,25 +74,25 @@ def common_parameters():
             {"use_sim_time": ParameterValue(LaunchConfiguration("use_sim_time"), value_type=bool)}]
 
 
-def pipeline_node(name: str, extra_parameters: list):
+def pipeline_node(name: str, extra_parameters: list, context):
     return Node(
         package="pws_ros",
         executable="pipeline",
         name=name,
         namespace=LaunchConfiguration("namespace"),
         parameters=common_parameters() + extra_parameters,
-        remappings=input_remappings(),
+        remappings=input_remappings(context),
         arguments=["--ros-args", "--log-level", LaunchConfiguration("log_level")],
         output="screen",
         emulate_tty=True,
     )
 
 
-def pipeline_nodes(workers: int):
+def pipeline_nodes(workers: int, context):
     """One node ``pipeline`` (workers 1), else ``pipeline_0`` .. with num_workers and worker_index set."""
     if workers == 1:
-        return [pipeline_node("pipeline", [])]
-    return [pipeline_node(f"pipeline_{i}", [{"num_workers": workers, "worker_index": i}]) for i in range(workers)]
+        return [pipeline_node("pipeline", [], context)]
+    return [pipeline_node(f"pipeline_{i}", [{"num_workers": workers, "worker_index": i}], context) for i in range(workers)]
 
 
 def _pipelines(context, *args, **kwargs):
@@ -87,7 +103,7 @@ def _pipelines(context, *args, **kwargs):
         raise RuntimeError(f"workers:={text!r} is not a whole number") from None
     if not 1 <= workers <= 1024:
         raise RuntimeError(f"workers:={workers} must lie in 1 .. 1024")
-    return pipeline_nodes(workers)
+    return pipeline_nodes(workers, context)
 
 
 def generate_launch_description():

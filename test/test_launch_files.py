@@ -14,6 +14,7 @@ REPO = Path(__file__).resolve().parents[1]
 LAUNCH = REPO / "launch"
 INPUTS = {"points": "/camera/depth/color/points", "depth": "/camera/aligned_depth_to_color/image_raw",
           "color": "/camera/color/image_raw", "camera_info": "/camera/color/camera_info"}
+DEPTH_INFO = "/camera/aligned_depth_to_color/camera_info"
 
 
 class _Rec:
@@ -76,8 +77,8 @@ def test_pipeline_launch_structure(monkeypatch):
         assert args[arg]["default_value"] == default
     (node,) = nodes
     assert node["package"] == "pws_ros" and node["executable"] == "pipeline" and node["name"] == "pipeline"
-    remapped = {src: dst.args[0] for src, dst in node["remappings"]}
-    assert remapped == {default: arg for arg, default in INPUTS.items()}
+    remapped = dict(node["remappings"])
+    assert remapped == {**{default: default for default in INPUTS.values()}, DEPTH_INFO: DEPTH_INFO}
     assert node["parameters"][0].args == ("config_file",)
     assert node["parameters"][1]["use_sim_time"].kwargs == {"value_type": bool}
     assert node["namespace"].args == ("namespace",)
@@ -96,20 +97,36 @@ def test_pipeline_launch_starts_one_node_per_worker(monkeypatch):
             _split(ld, workers=bad)
 
 
+@pytest.mark.parametrize("launch_file", ["pws.launch.py", "pws_nodes.launch.py"])
+def test_remapping_depth_moves_its_camera_info_too(monkeypatch, launch_file):
+    """The config's depth_camera_info_topic 'auto' names the camera_info beside depth_topic: a launch that remaps
+    depth alone remaps that CameraInfo beside it (before, it stayed on the default topic: the depth intrinsics
+    were never checked, an unregistered depth was held forever); depth_camera_info names it explicitly."""
+    ld = _load(LAUNCH / launch_file, monkeypatch)
+    _args, nodes = _split(ld, depth="/camera/camera/aligned_depth_to_color/image_raw")
+    remapped = dict(nodes[0]["remappings"])
+    assert remapped[INPUTS["depth"]] == "/camera/camera/aligned_depth_to_color/image_raw"
+    assert remapped[DEPTH_INFO] == "/camera/camera/aligned_depth_to_color/camera_info"
+    _args, nodes = _split(ld, depth_camera_info="/cam/depth/info")
+    assert dict(nodes[0]["remappings"])[DEPTH_INFO] == "/cam/depth/info"
+
+
 def test_four_process_launch_structure(monkeypatch):
     args, nodes = _split(_load(LAUNCH / "pws_nodes.launch.py", monkeypatch))
     assert {"config_file", "namespace", "use_sim_time", "points", "depth", "color", "camera_info"} <= set(args)
+    assert "workers" not in args   # one chain of four nodes: an argument that changed nothing, before
     assert [n["executable"] for n in nodes] == ["cloud_listener", "partition_planner", "projector", "certifier"]
     assert nodes[0]["remappings"] and not any(n["remappings"] for n in nodes[1:])
     assert all(n["parameters"][0].args == ("config_file",) for n in nodes)
 
 
 def test_default_topic_names_match_the_config():
-    from pws_ros.bridge.config import PwsConfig
+    from pws_ros.bridge.config import PwsConfig, depth_info_topic
 
     cfg = PwsConfig()
     assert (cfg.points_topic, cfg.depth_topic, cfg.color_topic, cfg.camera_info_topic) == (
         INPUTS["points"], INPUTS["depth"], INPUTS["color"], INPUTS["camera_info"])
+    assert depth_info_topic(cfg) == DEPTH_INFO
 
 
 def test_setup_installs_launch_and_config():
