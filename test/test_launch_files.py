@@ -134,6 +134,23 @@ def test_setup_installs_launch_and_config():
     assert 'glob("launch/*.py")' in text and 'glob("config/*.yaml")' in text
 
 
+def test_package_xml_declares_what_the_nodes_import():
+    """Every ROS package the nodes import (each message type's package, /tf_static's, rclpy's parameter
+    descriptors, the share-directory lookup) is an exec_depend of package.xml, so rosdep installs it (without
+    tf2_msgs the nodes silently skipped /tf_static: depth registration lost with no error)."""
+    import xml.etree.ElementTree as ET
+
+    from pws_ros.bridge.msgtypes import MESSAGE_TYPES
+    from pws_ros.nodes._base import TF_MESSAGE_TYPE
+
+    root = ET.parse(REPO / "package.xml").getroot()
+    exec_deps = {e.text for e in root.iter("exec_depend")}
+    needed = {t.split("/")[0] for t in [*MESSAGE_TYPES.values(), TF_MESSAGE_TYPE]}
+    needed |= {"rclpy", "rcl_interfaces", "ament_index_python", "launch", "launch_ros", "python3-yaml"}
+    assert needed <= exec_deps, sorted(needed - exec_deps)
+    assert "python3-hypothesis" in {e.text for e in root.iter("test_depend")}
+
+
 @pytest.mark.rclpy
 def test_launch_files_load_with_the_real_launch_package():
     import launch_ros  # noqa: F401  (part of the ROS 2 install the rclpy marker requires; skipped with rclpy)
