@@ -293,6 +293,9 @@ class InputFrontend:
             # rclpy_types always has TFMessage, an in-memory test context may leave it out
             if getattr(T, "TFMessage", None) is not None:
                 self.subs.append(ctx.subscription(T.TFMessage, TF_STATIC_TOPIC, self._on_tf_static, kind="tf_static", depth=100))
+            elif getattr(T, "flavour", "") == "rclpy":
+                ctx.log("warn", f"tf2_msgs is not installed: {TF_STATIC_TOPIC} is not read, so depth not registered to the colour "
+                                "camera cannot be registered from its extrinsic (install ros-jazzy-tf2-msgs)")
         # CameraInfo is needed by both modes (optional for organized clouds)
         self.subs.append(ctx.subscription(T.CameraInfo, cfg.camera_info_topic,
                                           self._wrap(self.assembler.on_info, topic=cfg.camera_info_topic, info=True)))
