@@ -319,3 +319,43 @@ def test_bound_at_merged_crossing_instant():
     x = render(cloud, cam, "tx", [a])
     lhs = sqdist(x, f[i : i + 1]) + sqdist(x, f[i + 1 : i + 2])
     assert lhs[0] <= rp.pair_bound_sq[i]
+
+
+def _pair_and_anchor_excess(cloud, cam, axis, alphas, poses, seg):
+    """The largest ``|x - x_i|^2 + |x - x_{i+1}|^2 - pair_bound_sq[seg]`` and ``|x - y|^2 - D_seg(y)^2`` (every grid
+    frame ``y`` an anchor) over the rendered frames ``x`` of ``poses`` (float64): > 0 is a violation."""
+    values = segment_values(cloud, cam, axis, alphas, background=0.0)
+    frames = render(cloud, cam, axis, alphas).astype(np.float64)
+    x = render(cloud, cam, axis, poses).astype(np.float64)
+    pair = ((x - frames[seg]) ** 2).sum((1, 2, 3)) + ((x - frames[seg + 1]) ** 2).sum((1, 2, 3))
+    worst = float((pair - values.pair_bound_sq(frames)[seg]).max())
+    for y in frames:
+        d = ((x - y) ** 2).sum((1, 2, 3))
+        worst = max(worst, float((d - values.anchor_dist_sq(frames, y)[seg]).max()))
+    return worst
+
+
+def test_a_point_crossing_the_image_just_before_its_pole_is_bounded():
+    """tz: a point 1e-14 m off the optical axis at depth 1 m, in a segment running into its pole (alpha = 1): in
+    the last ~1e-12 m before it the renderer draws it across rows 7..11. The sweep read a piece's range just inside
+    its ends (1e-12 of the piece), so it listed none of those rows, and both bounds fell short (24 > 12, a fuzzer's
+    find); a piece's range now reaches its ends, running to the image edge at a pole."""
+    cam = CameraIntrinsics(width=16, height=12, fx=16.0, fy=16.0, cx=7.5, cy=5.5)
+    cloud = Cloud(np.array([[0.0, 1e-14, 1.0]]), np.ones((1, 3), np.float32))
+    poses = 1.0 - np.array([1e-13, 6.5e-14, 5e-14, 3.6e-14, 3e-14, 1e-12, 2e-16])   # v = 6 + 1.6e-13 / depth: rows 7 .. 11
+    lit = render(cloud, cam, "tz", poses)[..., 0] > 0
+    assert {r for r in range(12) if lit[:, r].any()} >= {7, 8, 9, 10, 11}   # the case this is about
+    assert _pair_and_anchor_excess(cloud, cam, "tz", np.array([-1.2, 0.0, 1.2]), poses, 1) <= 0
+
+
+def test_a_rotation_touching_a_footprint_edge_is_bounded():
+    """rx: a point whose u extremum lies on a footprint edge (9 + PIXEL_OVERLAP): the torch renderer (1/Z' then a
+    fused multiply-add) computed u one ulp below the sweep's numpy value there and drew it in column 8 for ~2e-8 rad,
+    a pixel the sweep never listed (18 > 6, a fuzzer's find; it depends on how this CPU rounds). The bounds' sweep
+    now counts a point possibly present within RENDER_SLACK_PX of its footprint and surely present only inside it
+    by as much."""
+    cam = CameraIntrinsics(width=16, height=12, fx=16.0, fy=16.0, cx=7.5, cy=5.5)
+    cloud = Cloud(np.array([[0.10546741612418233, -0.08821160231884806, 1.6851697953671547]]), np.ones((1, 3), np.float32))
+    r = 0.10974989110815422
+    poses = 0.05229808424925814 + np.linspace(-3e-7, 3e-7, 121)
+    assert _pair_and_anchor_excess(cloud, cam, "rx", np.array([-r, 0.0, r]), poses, 1) <= 0

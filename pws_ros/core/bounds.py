@@ -24,7 +24,7 @@ from .camera import CameraIntrinsics
 from .cloud import Cloud
 from .partition import Plan, validate_grid
 from .render import Renderer
-from .sweep import pixel_states
+from .sweep import RENDER_SLACK_PX, pixel_states
 
 SAFETY = 1.0 + 1e-9
 
@@ -112,7 +112,7 @@ def segment_values(cloud: Cloud, intr: CameraIntrinsics, axis: str, alphas: np.n
     alphas = np.asarray(alphas, dtype=np.float64)
     pts = cloud.points
     lo, hi = float(alphas[0]), float(alphas[-1])
-    st = pixel_states(pts, intr, axis, lo, hi)
+    st = pixel_states(pts, intr, axis, lo, hi, slack_px=RENDER_SLACK_PX)   # (the renderer's rounding: .sweep)
     nseg = len(alphas) - 1
     # An interval counts for every segment it comes within tol of (a boundary near a grid point may
     # fall on either side of it in the renderer); intervals starting at lo / ending at hi are exact there.

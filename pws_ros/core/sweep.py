@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .camera import CameraIntrinsics
-from .motion import PIXEL_OVERLAP, depth, depth_tie_margin, pixel_span, project, split_points
+from .motion import PIXEL_OVERLAP, depth, depth_tie_margin, project, split_points
 
 BISECT_ITERS = 64
 
@@ -45,8 +45,20 @@ def _uvd(points, intr, axis, alpha):
     return u, v, d
 
 
-def compute_visits(points: np.ndarray, intr: CameraIntrinsics, axis: str, lo: float, hi: float) -> Visits:
-    """All visits of all points over ``[lo, hi]`` (see :class:`Visits`)."""
+def _range_end(f_end: np.ndarray, f_near: np.ndarray, f_mid: np.ndarray) -> np.ndarray:
+    """A piece's coordinate at its end: the value there, or where it is not finite (the pole of tz: depth 0 at
+    the end), where the piece runs to (+-big beyond the image, the way it moves from the middle to ``f_near``, the
+    value just inside the end; a coordinate that does not move stays)."""
+    big = 1e12
+    toward = np.sign(f_near - f_mid)
+    return np.where(np.isfinite(f_end), f_end, np.where(toward == 0, f_near, toward * big))
+
+
+def compute_visits(points: np.ndarray, intr: CameraIntrinsics, axis: str, lo: float, hi: float,
+                   overlap: float = PIXEL_OVERLAP) -> Visits:
+    """All visits of all points over ``[lo, hi]`` (see :class:`Visits`); ``overlap``: the footprints' overlap
+    (:func:`.motion.pixel_span`'s ``PIXEL_OVERLAP``; :func:`pixel_states` also asks for a little more and a
+    little less, for the renderer's rounding)."""
     points = np.asarray(points, dtype=np.float64)
     W, H = intr.width, intr.height
     splits = split_points(points, axis, lo, hi)  # (N, M) NaN padded
@@ -64,11 +76,19 @@ def compute_visits(points: np.ndarray, intr: CameraIntrinsics, axis: str, lo: fl
     eps = (b - a) * 1e-12
     ua, va, da = _uvd(P, intr, axis, a + eps)
     ub, vb, db = _uvd(P, intr, axis, b - eps)
-    _, _, dm = _uvd(P, intr, axis, 0.5 * (a + b))
+    um, vm, dm = _uvd(P, intr, axis, 0.5 * (a + b))
+    # the ends themselves too: u and v are monotonic on a piece, so its range is that of its ends; where an end is
+    # a pole (tz: depth 0), u and v run off to +-inf in the last eps before it, across every row or column they
+    # head for (a point 1e-14 m off the axis, 1e-12 m before its pole, crosses half the image)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u_a, v_a, _ = project(P, intr, axis, a)
+        u_b, v_b, _ = project(P, intr, axis, b)
+    u_a, v_a = _range_end(u_a, ua, um), _range_end(v_a, va, vm)
+    u_b, v_b = _range_end(u_b, ub, um), _range_end(v_b, vb, vm)
     # prune pieces that are behind the camera or never touch the image
-    umin, umax = np.minimum(ua, ub), np.maximum(ua, ub)
-    vmin, vmax = np.minimum(va, vb), np.maximum(va, vb)
-    e = PIXEL_OVERLAP
+    umin, umax = np.minimum.reduce([ua, ub, u_a, u_b]), np.maximum.reduce([ua, ub, u_a, u_b])
+    vmin, vmax = np.minimum.reduce([va, vb, v_a, v_b]), np.maximum.reduce([va, vb, v_a, v_b])
+    e = float(overlap)
     keep = (dm > 0) & (umax + e >= 0) & (umin - e < W) & (vmax + e >= 0) & (vmin - e < H)
     pidx, a, b, P = pidx[keep], a[keep], b[keep], P[keep]
     ua, ub, va, vb = ua[keep], ub[keep], va[keep], vb[keep]
@@ -121,8 +141,8 @@ def compute_visits(points: np.ndarray, intr: CameraIntrinsics, axis: str, lo: fl
     nonzero = s1 > s0
     s0, s1, own = s0[nonzero], s1[nonzero], own[nonzero]
     uu, vv, dd = _uvd(P[own], intr, axis, 0.5 * (s0 + s1))
-    c_lo, c_hi = pixel_span(uu)
-    r_lo, r_hi = pixel_span(vv)
+    c_lo, c_hi = np.floor(uu - e), np.floor(uu + e)   # motion.pixel_span with this overlap
+    r_lo, r_hi = np.floor(vv - e), np.floor(vv + e)
     # each sub-piece lies in one to four pixels (footprints overlap near the edges)
     parts = []
     for r, c, extra in ((r_lo, c_lo, None), (r_lo, c_hi, c_hi != c_lo), (r_hi, c_lo, r_hi != r_lo),
@@ -153,6 +173,9 @@ def compute_visits(points: np.ndarray, intr: CameraIntrinsics, axis: str, lo: fl
 
 TIME_TOL_REL = 1e-10
 TIME_TOL_ABS = 1e-12
+# pixels by which the torch renderer's u, v may differ from this sweep's numpy ones (a few ulps of coordinates up to
+# ~1e4 px: 1e-12; the rest is room): the bounds' footprints are widened (possible) and narrowed (sure) by it
+RENDER_SLACK_PX = 1e-9
 
 
 def default_tol(lo: float, hi: float) -> float:
@@ -189,7 +212,7 @@ class PixelStates:
 
 
 def pixel_states(points: np.ndarray, intr: CameraIntrinsics, axis: str, lo: float, hi: float,
-                 visits: Visits | None = None, tol: float | None = None) -> PixelStates:
+                 visits: Visits | None = None, tol: float | None = None, slack_px: float = 0.0) -> PixelStates:
     """Elementary intervals and candidate values of every pixel over ``[lo, hi]``.
 
     A visit ``[t0, t1]`` is taken as *possibly* present on ``[t0 - tol, t1 + tol]`` and *surely* present
@@ -200,17 +223,30 @@ def pixel_states(points: np.ndarray, intr: CameraIntrinsics, axis: str, lo: floa
     plus the background unless some point is surely present. Under ``rx``/``ry`` the depth order of
     two candidates can swap inside an interval: those instants are added as breakpoints too, so
     ``winner`` (the renderer's choice) is constant on every interval.
+
+    ``slack_px`` (the bounds: :data:`RENDER_SLACK_PX`): the renderer computes ``u`` and ``v`` in torch, in
+    another order of float operations than this sweep (``1/Z'`` then a fused multiply-add), so where a point's
+    ``u`` only touches a footprint edge the two may disagree by an ulp on whether it enters the pixel. A point is
+    then *possibly* present wherever its footprint widened by ``slack_px`` covers the pixel, and *surely*
+    present only where its footprint narrowed by ``slack_px`` does. (``winner``, which the planner reads, is
+    then only approximate near edges; the planner asks for no slack.)
     """
     points = np.asarray(points, dtype=np.float64)
-    if visits is None:
+    sure_ok = None
+    if visits is None and slack_px > 0:
+        wide = compute_visits(points, intr, axis, lo, hi, overlap=PIXEL_OVERLAP + slack_px)
+        narrow = compute_visits(points, intr, axis, lo, hi, overlap=PIXEL_OVERLAP - slack_px)
+        visits = Visits(*(np.concatenate([getattr(wide, f), getattr(narrow, f)]) for f in ("point", "row", "col", "t0", "t1")))
+        sure_ok = np.r_[np.zeros(len(wide), bool), np.ones(len(narrow), bool)]
+    elif visits is None:
         visits = compute_visits(points, intr, axis, lo, hi)
     if tol is None:
         tol = default_tol(lo, hi)
-    st = _states(points, intr, axis, lo, hi, visits, tol, np.zeros(0, np.int64), np.zeros(0))
+    st = _states(points, intr, axis, lo, hi, visits, tol, np.zeros(0, np.int64), np.zeros(0), sure_ok)
     if axis in ("rx", "ry"):
         cpix, ct = _depth_order_crossings(points, axis, st)
         if len(cpix):
-            st = _states(points, intr, axis, lo, hi, visits, tol, cpix, ct)
+            st = _states(points, intr, axis, lo, hi, visits, tol, cpix, ct, sure_ok)
     return st
 
 
@@ -231,7 +267,7 @@ def _block_search(keys: np.ndarray, bs: np.ndarray, be: np.ndarray, target: np.n
     return lo_i
 
 
-def _states(points, intr, axis, lo, hi, visits: Visits, tol: float, extra_pix, extra_t) -> PixelStates:
+def _states(points, intr, axis, lo, hi, visits: Visits, tol: float, extra_pix, extra_t, sure_ok=None) -> PixelStates:
     H, W = intr.height, intr.width
     npix = H * W
     vp = visits.row * W + visits.col
@@ -266,6 +302,16 @@ def _states(points, intr, axis, lo, hi, visits: Visits, tol: float, extra_pix, e
     vpt = visits.point[own]
     s_j, e_j = start[jint], end[jint]
     sure = (d0[own] <= s_j) & (e_j <= d1[own])
+    if sure_ok is not None and total:
+        # pixel_states' slack: a visit of the widened footprints is never sure, and a point is one candidate of an
+        # interval however many of its visits cover it (sure if one of them is)
+        sure &= sure_ok[own]
+        key = jint.astype(np.int64) * (len(points) + 1) + vpt
+        order = np.lexsort((~sure, key))
+        first_of = order[np.concatenate([[True], key[order][1:] != key[order][:-1]])]
+        first_of.sort()
+        jint, own, vpt, s_j, e_j, sure = (x[first_of] for x in (jint, own, vpt, s_j, e_j, sure))
+        total = len(jint)
     if total:
         g_first = np.concatenate([[True], jint[1:] != jint[:-1]])
         g_start = np.nonzero(g_first)[0]
