@@ -217,8 +217,9 @@ class FrameCertifier:
     def certify_config(self, axis: str | None = None, stamp_ns: int = 0, sizes: Sizes | None = None,
                        num_axes: int | None = None):
         """The core's CertifyConfig; for an axis of a frame: ``alpha / len(axes)`` (``num_axes``: the axes the
-        frame's statement covers, where they are not the configured ones) and the derived seed; with ``sizes`` (a time budget, :mod:`.budget`): their ``n0``, ``num_anchors``, ``n``, ``max_partitions``
-        and ``frontier_rounds``."""
+        frame's statement covers, where they are not the configured ones) and the derived seed; with ``sizes``
+        (a time budget, :mod:`.budget`): their ``n0``, ``num_anchors``, ``n``, ``max_partitions`` and
+        ``frontier_rounds``."""
         from dataclasses import replace
 
         from ..core.smoothing import derive_seed

@@ -30,8 +30,8 @@ def read_yaml_file(path, what: str = "file"):
 
 def require_creatable(path, what: str) -> None:
     """PwsError naming ``what`` unless ``path`` can be made (or, an existing folder, written in): the nearest
-    existing folder at or above it is a folder (not a file) that this process may write in. Nothing is created (checked before a long run, so that its
-    outputs are not lost at the end)."""
+    existing folder at or above it is a folder (not a file) that this process may write in. Nothing is created
+    (checked before a long run, so that its outputs are not lost at the end)."""
     import os
     from pathlib import Path
 
