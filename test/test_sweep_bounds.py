@@ -359,3 +359,17 @@ def test_a_rotation_touching_a_footprint_edge_is_bounded():
     r = 0.10974989110815422
     poses = 0.05229808424925814 + np.linspace(-3e-7, 3e-7, 121)
     assert _pair_and_anchor_excess(cloud, cam, "rx", np.array([-r, 0.0, r]), poses, 1) <= 0
+
+
+def test_segment_values_list_each_value_of_a_pixel_once():
+    """A value a pixel can show in a segment is listed once however many elementary intervals (or visits of the
+    bounds' widened and narrowed footprints) hold it: the bounds take a max over the values, and the four-process
+    mode sends them all (ry on this scene: 389,880 rows before, 73,800 after at 160x90)."""
+    rng = np.random.default_rng(3)
+    depth_m = np.full((H, W), 2.0)
+    depth_m[2:8, 3:10] = 1.2
+    cloud = cloud_from_rgbd(depth_m, rng.integers(0, 256, (H, W, 3), dtype=np.uint8), CAM)
+    for axis in ("ry", "tx"):
+        values = segment_values(cloud, CAM, axis, make_grid(RADIUS[axis], RADIUS[axis] / 4))
+        rows = np.column_stack([values.seg, values.pix, values.val.view(np.int32)])
+        assert len(rows) > 0 and len(np.unique(rows, axis=0)) == len(rows), axis

@@ -156,8 +156,13 @@ def segment_values(cloud: Cloud, intr: CameraIntrinsics, axis: str, alphas: np.n
     val = colors[np.where(cand < 0, len(cloud.colors), cand)]
     seg_e = seg_i[own]
     pix_e = st.pix[int_i[own]]
-    order = np.lexsort((pix_e, seg_e))
-    return SegmentValues(alphas, seg_e[order], pix_e[order], val[order].astype(np.float32), intr.shape)
+    val = val.astype(np.float32)
+    order = np.lexsort((val[:, 2], val[:, 1], val[:, 0], pix_e, seg_e))
+    seg_e, pix_e, val = seg_e[order], pix_e[order], val[order]
+    # each (segment, pixel, value) once: a value several intervals (or visits) list bounds nothing more
+    new = np.ones(len(seg_e), bool)
+    new[1:] = (seg_e[1:] != seg_e[:-1]) | (pix_e[1:] != pix_e[:-1]) | (val[1:] != val[:-1]).any(axis=1)
+    return SegmentValues(alphas, seg_e[new], pix_e[new], val[new], intr.shape)
 
 
 @dataclass
