@@ -303,6 +303,21 @@ def test_a_larger_budget_never_plans_a_smaller_target(k0, a, more, n, n_first):
         assert compared >= 32
 
 
+def _path_of_frames(F: int, step: float):
+    """A fixed geometry of ``F`` 4x4 frames on ``[-1, 1]`` (0 on the grid) whose one pixel walks ``step`` a frame, its
+    segments' exact boxes, and its plan (tx): a path each Cohen radius covers several segments of."""
+    from pws_ros.core.anchor_geometry import _FixedGeometry
+    from pws_ros.core.surfel_bounds import HullValues
+
+    alphas = np.linspace(-1.0, 1.0, F)
+    alphas[F // 2] = 0.0
+    f = np.full((F, 4, 4, 3), 0.5, np.float32)
+    f[:, 1, 1, 0] = (0.5 + step * np.arange(F)).astype(np.float32)
+    hulls = HullValues(alphas, np.minimum(f[:-1], f[1:]), np.maximum(f[:-1], f[1:]), np.zeros((F - 1, 4, 4), bool))
+    plan = Plan("pws_of", "tx", 1.0, float(np.diff(alphas).max()), F, alphas, "m", {"imaging": "surfel"})
+    return _FixedGeometry(f, hulls), plan
+
+
 def test_a_weak_frame_estimates_the_centre_alone_with_the_whole_budget():
     """Where the selection predicts no radius at the most anchors' level (a weak frame: p_A about 0.62), the
     plan is the centre alone with all ``num_anchors * n`` samples at level alpha (docs/certificate.md): never
@@ -312,10 +327,8 @@ def test_a_weak_frame_estimates_the_centre_alone_with_the_whole_budget():
     import torch
     from scipy.stats import norm
 
-    from pws_ros.core.anchor_geometry import _FixedGeometry
     from pws_ros.core.anchored import _certify_anchored
     from pws_ros.core.model import LoadedModel
-    from pws_ros.core.surfel_bounds import HullValues
 
     p, sigma, v0 = 0.62, 0.5, 0.5
     thr = v0 - sigma * float(norm.ppf(p))   # class 0 iff pixel (0, 0, 0) plus its noise exceeds thr: P = p on every frame
@@ -326,16 +339,9 @@ def test_a_weak_frame_estimates_the_centre_alone_with_the_whole_budget():
             return torch.stack([a, torch.zeros_like(a)], 1)
 
     model = LoadedModel(Net().eval(), ["a", "b"], None, "closed form")
-    F, h, w = 81, 4, 4
-    alphas = np.linspace(-1.0, 1.0, F)
-    alphas[F // 2] = 0.0
-    f = np.full((F, h, w, 3), 0.5, np.float32)
-    f[:, 1, 1, 0] = (0.5 + 0.0083 * np.arange(F)).astype(np.float32)
-    hulls = HullValues(alphas, np.minimum(f[:-1], f[1:]), np.maximum(f[:-1], f[1:]), np.zeros((F - 1, h, w), bool))
-    plan = Plan("pws_of", "tx", 1.0, float(np.diff(alphas).max()), F, alphas, "m", {"imaging": "surfel"})
+    geometry, plan = _path_of_frames(81, 0.0083)
     cfg = CertifyConfig(sigma=sigma, n0=64, n=100, alpha=0.01, num_anchors=8, seed=3, batch_size=2000).validate()
-    cert = _certify_anchored(_FixedGeometry(f, hulls), plan, AdaptiveAnchorsRule(cfg.num_anchors), model, cfg, None, None,
-                             "pws_of", {}, 0.0)
+    cert = _certify_anchored(geometry, plan, AdaptiveAnchorsRule(cfg.num_anchors), model, cfg, None, None, "pws_of", {}, 0.0)
     b = cert.bounds
     assert b["looks"]["sizes"] == [cfg.num_anchors * cfg.n] and not b["looks"]["joint"]   # the weak-frame plan
     assert b["anchors"] == [0.0] and b["anchor_samples"] == [cfg.num_anchors * cfg.n]
@@ -347,20 +353,12 @@ def test_a_weak_frame_estimates_the_centre_alone_with_the_whole_budget():
 def test_progress_ends_at_the_images_the_classifier_saw():
     """The anchors' progress ends at the classifier calls made (a joint first look that certifies needs far fewer
     than the n0 + num_anchors * n the plan allowed: a bar at "6208/6208" after 448 calls, before)."""
-    from pws_ros.core.anchor_geometry import _FixedGeometry
     from pws_ros.core.anchored import _certify_anchored
-    from pws_ros.core.surfel_bounds import HullValues
 
-    F, h, w = 41, 4, 4
-    alphas = np.linspace(-1.0, 1.0, F)
-    alphas[F // 2] = 0.0
-    f = np.full((F, h, w, 3), 0.5, np.float32)
-    f[:, 1, 1, 0] = (0.5 + 0.01 * np.arange(F)).astype(np.float32)
-    hulls = HullValues(alphas, np.minimum(f[:-1], f[1:]), np.maximum(f[:-1], f[1:]), np.zeros((F - 1, h, w), bool))
-    plan = Plan("pws_of", "tx", 1.0, float(np.diff(alphas).max()), F, alphas, "m", {"imaging": "surfel"})
+    geometry, plan = _path_of_frames(41, 0.01)
     cfg = CertifyConfig(sigma=0.5, n0=64, n=256, alpha=0.01, num_anchors=8, seed=1).validate()
     ticks = []
-    cert = _certify_anchored(_FixedGeometry(f, hulls), plan, AdaptiveAnchorsRule(cfg.num_anchors), never_changing_model((h, w)),
+    cert = _certify_anchored(geometry, plan, AdaptiveAnchorsRule(cfg.num_anchors), never_changing_model((4, 4)),
                              cfg, None, lambda done, total: ticks.append((done, total)), "pws_of", {}, 0.0)
     assert cert.certified and cert.classifier_calls < cfg.n0 + cfg.num_anchors * cfg.n   # the case this is about
     assert ticks[0] == (cfg.n0, cfg.n0 + cfg.num_anchors * cfg.n)
