@@ -13,7 +13,7 @@ the paper (the consistent intervals of :mod:`.partition`) is read off these inte
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -236,7 +236,7 @@ def pixel_states(points: np.ndarray, intr: CameraIntrinsics, axis: str, lo: floa
     if visits is None and slack_px > 0:
         wide = compute_visits(points, intr, axis, lo, hi, overlap=PIXEL_OVERLAP + slack_px)
         narrow = compute_visits(points, intr, axis, lo, hi, overlap=PIXEL_OVERLAP - slack_px)
-        visits = Visits(*(np.concatenate([getattr(wide, f), getattr(narrow, f)]) for f in ("point", "row", "col", "t0", "t1")))
+        visits = Visits(*(np.concatenate([getattr(wide, f.name), getattr(narrow, f.name)]) for f in fields(Visits)))
         sure_ok = np.r_[np.zeros(len(wide), bool), np.ones(len(narrow), bool)]
     elif visits is None:
         visits = compute_visits(points, intr, axis, lo, hi)

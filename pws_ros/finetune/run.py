@@ -153,8 +153,9 @@ class FinetuneRun:
             return self._run_all()
         except PwsError:
             work = self.opts.resolved_work_dir()
-            kept = [f for f in work.rglob("*") if f.is_file() and f.name not in (MANIFEST, "new_head.pt")] if work.is_dir() else [1]
-            if self._made_work and not kept:   # (a frame cached is kept: --resume continues from it)
+            # (a frame cached is kept: --resume continues from it)
+            if self._made_work and work.is_dir() and not any(f.is_file() and f.name not in (MANIFEST, "new_head.pt")
+                                                             for f in work.rglob("*")):
                 shutil.rmtree(work, ignore_errors=True)
             raise
 

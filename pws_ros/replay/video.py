@@ -41,9 +41,8 @@ class OverlayVideo:
             require(overwrite, f"--video {self.path} already exists: choose another path or pass --overwrite")
             require(self._replaceable(), f"--video {self.path}: --overwrite replaces a video file or a folder of PNG files "
                                          "only, and this is neither")
-        require(self.path.parent.is_dir(), f"--video {self.path}: its folder {self.path.parent} "
-                                           + ("is a file" if self.path.parent.exists() else "does not exist"))
-        require_creatable(self.path, "--video")
+        require_creatable(self.path, "--video")   # (a file in place of its folder, or a folder not writable)
+        require(self.path.parent.is_dir(), f"--video {self.path}: its folder {self.path.parent} does not exist")
         name = f".{self.path.stem}.partial{self.path.suffix}" if self.is_video else f".{self.path.name}.partial"
         self.partial = self.path.parent / name
         self.frames = 0
